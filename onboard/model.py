@@ -1,0 +1,626 @@
+"""The vehicle model of spec/vehicle-model.md as a sum of named terms, compiled with numba.
+
+Pure math: a state vector and a command vector in, a state derivative out. The same compiled
+function serves the HIL plant (integrated with every enabled effect), the onboard loop (its
+thrust and geometry pieces) and the diagnosis (re-simulation with other parameters).
+
+Layout. The state x is flat (`StateLayout`): NED position, quaternion (w, x, y, z; body to
+NED), nu = [u, v, w, p, q, r] (absolute body velocities), propeller speeds n (rev/s), joint
+angles alpha and beta (rad), then 20 transient-filter states per unit (seed 004, five rows of
+four). The command u is [n_cmd (rev/s) per unit, alpha_cmd per unit, beta_cmd per unit].
+The parameters are one flat float vector packed from a `Vehicle` by `pack_params`, so a batch
+of vehicles with different parameters is just a 2-D array, and a test can change one number.
+
+Each term is its own function below (`rigid_body_and_added_mass`, `damping`, `restoring`,
+`jet_unit`, `azimuth_transient_*`, `submerged_fraction`, `wall_factor`, ...). `derivative`
+sums them; an effect that is switched off contributes exactly what the spec says "off" means.
+Every function carries the equation it implements.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .vehicle import EFFECT_IDS, Vehicle
+
+# ------------------------------------------------------------------------------------------------
+# Parameter layout: one line per vehicle key, in the order packed. Offsets are module constants,
+# which numba folds into the compiled code.
+
+_KEYS: list[tuple[str, int]] = []
+
+
+def _at(key: str, size: int = 1) -> int:
+    off = sum(s for _, s in _KEYS)
+    _KEYS.append((key, size))
+    return off
+
+
+P_RHO = _at("environment.rho")
+P_G = _at("environment.g")
+P_PATM = _at("environment.p_atm")
+P_SURF = _at("environment.surface_depth")
+P_FLOOR = _at("environment.floor_depth")
+P_CURRENT = _at("environment.current", 3)
+P_MASS = _at("body.mass")
+P_VOLUME = _at("body.volume")
+P_RADIUS = _at("body.radius")
+P_INERTIA = _at("body.inertia", 3)
+P_CG = _at("body.cg", 3)
+P_CB = _at("body.cb", 3)
+P_MA = _at("hydro.added_mass", 6)
+P_DL = _at("hydro.linear_damping", 6)
+P_DQ = _at("hydro.quadratic_damping", 6)
+P_DIAM = _at("thruster.diameter")
+P_KT = _at("thruster.kt", 3)
+P_JRANGE = _at("thruster.j_range", 2)
+P_NMAX = _at("thruster.n_max")
+P_TAU_M = _at("thruster.motor_time_constant")
+P_ALIM = _at("servo.angle_limit")
+P_RLIM = _at("servo.rate_limit")
+P_TAU_S = _at("servo.time_constant")
+P_GAIN_T = _at("effects.azimuth_transient.gain_per_newton")
+P_KWALL = _at("effects.wall_proximity.k_wall")
+P_ON = _at("effects.*.enabled", len(EFFECT_IDS))  # 1.0 / 0.0 in EFFECT_IDS order
+# Five transient rows (f1x, f1y, m1z, f2x, f2z), each as controllable canonical form:
+# denominator [a1, a2, a3, a4] of s^4 + a1 s^3 + a2 s^2 + a3 s + a4, numerator [b1..b4] of
+# b1 s^3 + b2 s^2 + b3 s + b4.
+TRANSIENT_ROWS = ("f1x", "f1y", "m1z", "f2x", "f2z")
+P_TF = _at("effects.azimuth_transient.<rows as state space>", 8 * len(TRANSIENT_ROWS))
+P_UNITS = _at("unit[*].position+neutral", 0)  # then 6 values per unit
+
+ON_INFLOW, ON_MOTOR, ON_SERVO, ON_TRANSIENT, ON_SURFACE, ON_WALL, ON_CURRENT = (
+    P_ON + EFFECT_IDS.index(e) for e in EFFECT_IDS
+)
+
+# Transient row indices and what drives them (seed 004, spec 4.1).
+TF_F1X, TF_F1Y, TF_M1Z, TF_F2X, TF_F2Z = range(5)
+N_TF_STATES = 4 * len(TRANSIENT_ROWS)
+
+
+def transfer_function(row: str, coeffs) -> tuple[np.ndarray, np.ndarray]:
+    """(num, den) polynomials, highest power first, of a seed-004 row.
+
+    Force rows, seed 004 eq. 5: K (s^2 + a s + b) / ((s^2 + c s + d)(s^2 + e s + g)).
+    Moment row, seed 004 eq. 6: K s^2 / (s^4 + a s^3 + b s^2 + c s + d).
+    """
+    if row == "m1z":
+        k, a, b, c, d = coeffs
+        return np.array([k, 0.0, 0.0]), np.array([1.0, a, b, c, d])
+    k, a, b, c, d, e, g = coeffs
+    return k * np.array([1.0, a, b]), np.polymul([1.0, c, d], [1.0, e, g])
+
+
+def _canonical(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """[a1..a4, b1..b4] of a strictly proper 4th-order transfer function (den monic)."""
+    den = np.asarray(den, float)
+    num = np.asarray(num, float) / den[0]
+    den = den / den[0]
+    b = np.zeros(4)
+    b[4 - len(num):] = num
+    return np.concatenate([den[1:], b])
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """Where each named piece of the state vector lives, for a vehicle with `n_units` jets."""
+
+    n_units: int = 4
+
+    @property
+    def pos(self):
+        return slice(0, 3)
+
+    @property
+    def quat(self):
+        return slice(3, 7)
+
+    @property
+    def nu(self):
+        return slice(7, 13)
+
+    @property
+    def n(self):
+        return slice(13, 13 + self.n_units)
+
+    @property
+    def alpha(self):
+        return slice(13 + self.n_units, 13 + 2 * self.n_units)
+
+    @property
+    def beta(self):
+        return slice(13 + 2 * self.n_units, 13 + 3 * self.n_units)
+
+    @property
+    def transient(self):
+        return slice(13 + 3 * self.n_units, self.size)
+
+    @property
+    def size(self) -> int:
+        return 13 + 3 * self.n_units + N_TF_STATES * self.n_units
+
+
+def pack_params(v: Vehicle) -> np.ndarray:
+    """The flat parameter vector of a vehicle, in the layout above."""
+    out: list[float] = []
+    for key, size in _KEYS:
+        if key == "effects.*.enabled":
+            out += [1.0 if v.effects.on(e) else 0.0 for e in EFFECT_IDS]
+        elif key.startswith("effects.azimuth_transient.<"):
+            at = v.effects.azimuth_transient
+            for row in TRANSIENT_ROWS:
+                out += list(_canonical(*transfer_function(row, getattr(at, row))))
+        elif key.startswith("unit[*]"):
+            for u in v.units:
+                out += list(u.position) + list(u.neutral)
+        else:
+            val = v.get(key)
+            out += list(val) if size > 1 else [float(val)]
+    return np.array(out, dtype=np.float64)
+
+
+def initial_state(v: Vehicle, depth_m: float = 0.5, command=None) -> np.ndarray:
+    """At rest, level, yaw 0, x = y = 0 at `depth_m`; n = 0; joints at the first command (spec 6)."""
+    lay = StateLayout(v.n_units)
+    x = np.zeros(lay.size)
+    x[2] = v.environment.surface_depth + depth_m
+    x[3] = 1.0
+    if command is not None:
+        lim = v.servo.angle_limit
+        k = v.n_units
+        x[lay.alpha] = np.clip(np.asarray(command)[k:2 * k], -lim, lim)
+        x[lay.beta] = np.clip(np.asarray(command)[2 * k:3 * k], -lim, lim)
+    return x
+
+
+# ------------------------------------------------------------------------------------------------
+# Small vector algebra (scalar code: numba turns it into straight-line machine code).
+
+@njit(cache=True, inline="always")
+def cross(a0, a1, a2, b0, b1, b2):
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@njit(cache=True)
+def rotation(q):
+    """R(q), body to NED, of a unit quaternion q = [w, x, y, z] (Fossen 2011 eq. 2.72)."""
+    w, a, b, c = q[0], q[1], q[2], q[3]
+    R = np.empty((3, 3))
+    R[0, 0] = 1 - 2 * (b * b + c * c)
+    R[0, 1] = 2 * (a * b - w * c)
+    R[0, 2] = 2 * (a * c + w * b)
+    R[1, 0] = 2 * (a * b + w * c)
+    R[1, 1] = 1 - 2 * (a * a + c * c)
+    R[1, 2] = 2 * (b * c - w * a)
+    R[2, 0] = 2 * (a * c - w * b)
+    R[2, 1] = 2 * (b * c + w * a)
+    R[2, 2] = 1 - 2 * (a * a + b * b)
+    return R
+
+
+@njit(cache=True)
+def solve6(M, b):
+    """x with M x = b for a 6x6 M (Gaussian elimination with partial pivoting)."""
+    A = M.copy()
+    x = b.copy()
+    for k in range(6):
+        piv = k
+        for i in range(k + 1, 6):
+            if abs(A[i, k]) > abs(A[piv, k]):
+                piv = i
+        if piv != k:
+            for j in range(6):
+                A[k, j], A[piv, j] = A[piv, j], A[k, j]
+            x[k], x[piv] = x[piv], x[k]
+        for i in range(k + 1, 6):
+            f = A[i, k] / A[k, k]
+            for j in range(k, 6):
+                A[i, j] -= f * A[k, j]
+            x[i] -= f * x[k]
+    for k in range(5, -1, -1):
+        s = x[k]
+        for j in range(k + 1, 6):
+            s -= A[k, j] * x[j]
+        x[k] = s / A[k, k]
+    return x
+
+
+# ------------------------------------------------------------------------------------------------
+# Terms
+
+@njit(cache=True)
+def thrust_coefficient(J, kt0, kt1, kt2):
+    """K(J) = kt0 + kt1 J + kt2 J^2 (seed 000 eq. 14-15)."""
+    return kt0 + kt1 * J + kt2 * J * J
+
+
+@njit(cache=True)
+def advance_ratio(v_axial, n, diameter, j_lo, j_hi):
+    """J = V_a / (n D), clipped to the fitted range; J = 0 when n = 0 (seed 000 eq. 11, spec 3)."""
+    if n <= 1e-9:
+        return 0.0
+    return min(max(v_axial / (n * diameter), j_lo), j_hi)
+
+
+@njit(cache=True)
+def jet_thrust(n, v_axial, p):
+    """T = rho D^4 n^2 K(J) (seed 000 eq. 15); with `thrust_inflow` off K = kt0 (bollard)."""
+    D = p[P_DIAM]
+    if p[ON_INFLOW] > 0.5:
+        J = advance_ratio(v_axial, n, D, p[P_JRANGE], p[P_JRANGE + 1])
+    else:
+        J = 0.0
+    return p[P_RHO] * D ** 4 * n * n * thrust_coefficient(J, p[P_KT], p[P_KT + 1], p[P_KT + 2])
+
+
+@njit(cache=True)
+def jet_frame(alpha, beta, e1x, e1y):
+    """d, e_alpha, e_beta of a unit (spec 3 and 4.1), as a 3x3 array of rows.
+
+    e1 = neutral (horizontal), e3 = body z, e2 = e3 x e1 = (-e1y, e1x, 0).
+    d = cos b cos a e1 + cos b sin a e2 - sin b e3; e_alpha = dd/da / cos b; e_beta = dd/db.
+    """
+    e2x, e2y = -e1y, e1x
+    ca, sa, cb, sb = math.cos(alpha), math.sin(alpha), math.cos(beta), math.sin(beta)
+    F = np.empty((3, 3))
+    F[0, 0] = cb * ca * e1x + cb * sa * e2x
+    F[0, 1] = cb * ca * e1y + cb * sa * e2y
+    F[0, 2] = -sb
+    F[1, 0] = -sa * e1x + ca * e2x
+    F[1, 1] = -sa * e1y + ca * e2y
+    F[1, 2] = 0.0
+    F[2, 0] = -sb * ca * e1x - sb * sa * e2x
+    F[2, 1] = -sb * ca * e1y - sb * sa * e2y
+    F[2, 2] = -cb
+    return F
+
+
+@njit(cache=True)
+def submerged_fraction(depth, radius):
+    """s = h^2 (3R - h) / (4 R^3), h = clip(depth + R, 0, 2R) (spherical cap; seed 003 sec. 3)."""
+    h = min(max(depth + radius, 0.0), 2.0 * radius)
+    return h * h * (3.0 * radius - h) / (4.0 * radius ** 3)
+
+
+@njit(cache=True)
+def wall_factor(z, floor_depth, radius, k_wall):
+    """1 + k_wall (R / d)^3, d = max(floor_depth - z, 1.2 R) (seed 001 gap effect, spec 4)."""
+    d = max(floor_depth - z, 1.2 * radius)
+    return 1.0 + k_wall * (radius / d) ** 3
+
+
+@njit(cache=True)
+def servo_rate(a, a_cmd, limit, rate_limit, tau):
+    """a' = clip((clip(a_cmd) - a) / tau, +-rate_limit) (spec 4, `servo_lag`)."""
+    target = min(max(a_cmd, -limit), limit)
+    return min(max((target - a) / tau, -rate_limit), rate_limit)
+
+
+@njit(cache=True)
+def filter_derivative(xf, drive, coef, out):
+    """Controllable canonical form: x1' = x2, x2' = x3, x3' = x4, x4' = -a4 x1 - ... - a1 x4 + u."""
+    out[0] = xf[1]
+    out[1] = xf[2]
+    out[2] = xf[3]
+    out[3] = -coef[3] * xf[0] - coef[2] * xf[1] - coef[1] * xf[2] - coef[0] * xf[3] + drive
+
+
+@njit(cache=True)
+def filter_output(xf, coef):
+    """y = b4 x1 + b3 x2 + b2 x3 + b1 x4."""
+    return coef[7] * xf[0] + coef[6] * xf[1] + coef[5] * xf[2] + coef[4] * xf[3]
+
+
+@njit(cache=True)
+def mass_matrix(p, s_added, wall):
+    """M = M_RB + M_A (Fossen 2011 eq. 3.44, 6.5); M_A = s diag(added_mass), heave x wall."""
+    m = p[P_MASS]
+    xg, yg, zg = p[P_CG], p[P_CG + 1], p[P_CG + 2]
+    M = np.zeros((6, 6))
+    for i in range(3):
+        M[i, i] = m
+    # -m S(r_g) upper right, m S(r_g) lower left, S(a) b = a x b
+    S = np.array([[0.0, -zg, yg], [zg, 0.0, -xg], [-yg, xg, 0.0]])
+    for i in range(3):
+        for j in range(3):
+            M[i, 3 + j] = -m * S[i, j]
+            M[3 + i, j] = m * S[i, j]
+    # I_b = I_g - m S(r_g)^2 (parallel axes)
+    S2 = S @ S
+    for i in range(3):
+        for j in range(3):
+            M[3 + i, 3 + j] = -m * S2[i, j]
+        M[3 + i, 3 + i] += p[P_INERTIA + i]
+    for i in range(6):
+        M[i, i] += s_added * p[P_MA + i] * (wall if i == 2 else 1.0)
+    return M
+
+
+@njit(cache=True)
+def coriolis_times_nu(M, nu_r):
+    """(C_RB + C_A)(nu_r) nu_r from Kirchhoff's equations (Fossen 2011 eq. 3.57, 6.43).
+
+    With momentum h = M nu_r = [h1, h2]: C nu = [w x h1, w x h2 + v x h1].
+    """
+    h = M @ nu_r
+    v0, v1, v2, w0, w1, w2 = nu_r[0], nu_r[1], nu_r[2], nu_r[3], nu_r[4], nu_r[5]
+    out = np.empty(6)
+    out[0], out[1], out[2] = cross(w0, w1, w2, h[0], h[1], h[2])
+    a0, a1, a2 = cross(w0, w1, w2, h[3], h[4], h[5])
+    b0, b1, b2 = cross(v0, v1, v2, h[0], h[1], h[2])
+    out[3], out[4], out[5] = a0 + b0, a1 + b1, a2 + b2
+    return out
+
+
+@njit(cache=True)
+def damping(nu_r, p):
+    """D(nu_r) nu_r = (D_l + D_q |nu_r|) nu_r, elementwise (spec 2)."""
+    out = np.empty(6)
+    for i in range(6):
+        out[i] = (p[P_DL + i] + p[P_DQ + i] * abs(nu_r[i])) * nu_r[i]
+    return out
+
+
+@njit(cache=True)
+def restoring(R, p, s_buoy):
+    """-g(eta): weight at r_g, buoyancy B = rho g V s at r_b (Fossen 2011 eq. 4.6)."""
+    W = p[P_MASS] * p[P_G]
+    B = p[P_RHO] * p[P_G] * p[P_VOLUME] * s_buoy
+    # R^T [0, 0, 1] is the third row of R
+    kx, ky, kz = R[2, 0], R[2, 1], R[2, 2]
+    fg0, fg1, fg2 = W * kx, W * ky, W * kz
+    fb0, fb1, fb2 = -B * kx, -B * ky, -B * kz
+    out = np.empty(6)
+    out[0], out[1], out[2] = fg0 + fb0, fg1 + fb1, fg2 + fb2
+    m0, m1, m2 = cross(p[P_CG], p[P_CG + 1], p[P_CG + 2], fg0, fg1, fg2)
+    n0, n1, n2 = cross(p[P_CB], p[P_CB + 1], p[P_CB + 2], fb0, fb1, fb2)
+    out[3], out[4], out[5] = m0 + n0, m1 + n1, m2 + n2
+    return out
+
+
+@njit(cache=True)
+def jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust_out):
+    """tau_jets + tau_transient of k units; writes actuator and filter derivatives into xdot.
+
+    Per unit i (spec 3, 4 and 4.1): n_i (motor_lag), alpha_i, beta_i (servo_lag), axial inflow
+    V_a = (v_r + w x r_i) . d_i, thrust T_i (seed 000 eq. 15), transient rows driven by the joint
+    rates, force F_i = (T_i + dT_i) d_i + g T_i (F1y e_alpha + F2z e_beta) at r_i and the
+    reaction moment -g T_i M1z about body z. Jets never push backwards: T_i + dT_i >= 0.
+    """
+    i_n, i_a, i_b, i_tf = 13, 13 + k, 13 + 2 * k, 13 + 3 * k
+    lim, nmax = p[P_ALIM], p[P_NMAX]
+    gain = p[P_GAIN_T] if p[ON_TRANSIENT] > 0.5 else 0.0
+    for i in range(k):
+        # Actuators
+        n_cmd = min(max(u[i], 0.0), nmax)
+        if p[ON_MOTOR] > 0.5:
+            n = min(max(x[i_n + i], 0.0), nmax)
+            xdot[i_n + i] = (n_cmd - n) / p[P_TAU_M]
+        else:
+            n = n_cmd
+            xdot[i_n + i] = 0.0
+        if p[ON_SERVO] > 0.5:
+            a, b = x[i_a + i], x[i_b + i]
+            ad = servo_rate(a, u[k + i], lim, p[P_RLIM], p[P_TAU_S])
+            bd = servo_rate(b, u[2 * k + i], lim, p[P_RLIM], p[P_TAU_S])
+        else:
+            a = min(max(u[k + i], -lim), lim)
+            b = min(max(u[2 * k + i], -lim), lim)
+            ad, bd = 0.0, 0.0
+        xdot[i_a + i], xdot[i_b + i] = ad, bd
+        # Geometry and inflow
+        o = P_UNITS + 6 * i
+        rx, ry, rz = p[o], p[o + 1], p[o + 2]
+        F = jet_frame(a, b, p[o + 3], p[o + 4])
+        c0, c1, c2 = cross(nu_r[3], nu_r[4], nu_r[5], rx, ry, rz)
+        v_axial = (nu_r[0] + c0) * F[0, 0] + (nu_r[1] + c1) * F[0, 1] + (nu_r[2] + c2) * F[0, 2]
+        T = jet_thrust(n, v_axial, p)
+        # Transient rows (seed 004 eq. 5-6), driven by the actual joint rates
+        j = i_tf + N_TF_STATES * i
+        f1x = f1y = m1z = f2x = f2z = 0.0
+        if gain > 0.0:
+            drives = (abs(ad), ad, ad, abs(bd), bd)
+            for r in range(5):
+                coef = p[P_TF + 8 * r:P_TF + 8 * r + 8]
+                xf = x[j + 4 * r:j + 4 * r + 4]
+                filter_derivative(xf, drives[r], coef, xdot[j + 4 * r:j + 4 * r + 4])
+            f1x = filter_output(x[j:j + 4], p[P_TF:P_TF + 8])
+            f1y = filter_output(x[j + 4:j + 8], p[P_TF + 8:P_TF + 16])
+            m1z = filter_output(x[j + 8:j + 12], p[P_TF + 16:P_TF + 24])
+            f2x = filter_output(x[j + 12:j + 16], p[P_TF + 24:P_TF + 32])
+            f2z = filter_output(x[j + 16:j + 20], p[P_TF + 32:P_TF + 40])
+        else:
+            for r in range(N_TF_STATES):
+                xdot[j + r] = 0.0
+        g_T = gain * T
+        axial = max(T - g_T * (f1x + f2x), 0.0)
+        lat_a, lat_b = g_T * f1y, g_T * f2z
+        fx = axial * F[0, 0] + lat_a * F[1, 0] + lat_b * F[2, 0]
+        fy = axial * F[0, 1] + lat_a * F[1, 1] + lat_b * F[2, 1]
+        fz = axial * F[0, 2] + lat_a * F[1, 2] + lat_b * F[2, 2]
+        mx, my, mz = cross(rx, ry, rz, fx, fy, fz)
+        tau[0] += fx
+        tau[1] += fy
+        tau[2] += fz
+        tau[3] += mx
+        tau[4] += my
+        tau[5] += mz - g_T * m1z
+        thrust_out[i] = axial
+
+
+@njit(cache=True)
+def derivative(x, u, p, xdot):
+    """x' = f(x, u; p) of spec 2-4; also returns the jet thrusts T_i (N) after transient loss.
+
+    (M_RB + M_A) nu_r' + C(nu_r) nu_r + D(nu_r) nu_r + g(eta) = tau_jets + tau_transient,
+    nu' = nu_r' + [-w x (R^T v_c), 0], p' = R v, q' = 1/2 q (x) [0, w].
+    """
+    k = (x.shape[0] - 13) // (3 + N_TF_STATES)
+    q = x[3:7]
+    nu = x[7:13]
+    R = rotation(q)
+    # Current: nu_c = [R^T v_c, 0] (spec 2, `current`)
+    vc0 = vc1 = vc2 = 0.0
+    if p[ON_CURRENT] > 0.5:
+        c = p[P_CURRENT:P_CURRENT + 3]
+        vc0 = R[0, 0] * c[0] + R[1, 0] * c[1] + R[2, 0] * c[2]
+        vc1 = R[0, 1] * c[0] + R[1, 1] * c[1] + R[2, 1] * c[2]
+        vc2 = R[0, 2] * c[0] + R[1, 2] * c[1] + R[2, 2] * c[2]
+    nu_r = nu.copy()
+    nu_r[0] -= vc0
+    nu_r[1] -= vc1
+    nu_r[2] -= vc2
+    # Surface and wall proximity scale buoyancy and added mass
+    depth = x[2] - p[P_SURF]
+    s = submerged_fraction(depth, p[P_RADIUS]) if p[ON_SURFACE] > 0.5 else 1.0
+    wall = wall_factor(x[2], p[P_FLOOR], p[P_RADIUS], p[P_KWALL]) if p[ON_WALL] > 0.5 else 1.0
+    M = mass_matrix(p, s, wall)
+    # Generalised forces
+    tau = np.zeros(6)
+    thrust = np.empty(k)
+    jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust)
+    rhs = tau - coriolis_times_nu(M, nu_r) - damping(nu_r, p) + restoring(R, p, s)
+    nu_r_dot = solve6(M, rhs)
+    # nu' = nu_r' + nu_c', nu_c' = -w x nu_c
+    w0, w1, w2 = nu[3], nu[4], nu[5]
+    d0, d1, d2 = cross(w0, w1, w2, vc0, vc1, vc2)
+    for i in range(6):
+        xdot[7 + i] = nu_r_dot[i]
+    xdot[7] -= d0
+    xdot[8] -= d1
+    xdot[9] -= d2
+    # Kinematics: p' = R v, q' = 1/2 q (x) [0, w] (Fossen 2011 eq. 2.78)
+    for i in range(3):
+        xdot[i] = R[i, 0] * nu[0] + R[i, 1] * nu[1] + R[i, 2] * nu[2]
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    xdot[3] = 0.5 * (-qx * w0 - qy * w1 - qz * w2)
+    xdot[4] = 0.5 * (qw * w0 + qy * w2 - qz * w1)
+    xdot[5] = 0.5 * (qw * w1 + qz * w0 - qx * w2)
+    xdot[6] = 0.5 * (qw * w2 + qx * w1 - qy * w0)
+    return thrust
+
+
+@njit(cache=True)
+def project(x, u, p):
+    """After a step (spec 6): renormalise q, clip joints, and set lag-free actuators to command."""
+    k = (x.shape[0] - 13) // (3 + N_TF_STATES)
+    nq = math.sqrt(x[3] ** 2 + x[4] ** 2 + x[5] ** 2 + x[6] ** 2)
+    for i in range(3, 7):
+        x[i] /= nq
+    lim = p[P_ALIM]
+    for i in range(k):
+        if p[ON_MOTOR] < 0.5:
+            x[13 + i] = min(max(u[i], 0.0), p[P_NMAX])
+        for j in (13 + k + i, 13 + 2 * k + i):
+            if p[ON_SERVO] < 0.5:
+                x[j] = min(max(u[j - 13], -lim), lim)
+            else:
+                x[j] = min(max(x[j], -lim), lim)
+
+
+@njit(cache=True)
+def rk4_step(x, u, p, dt):
+    """One classical Runge-Kutta step with u held over it, then `project` (spec 6)."""
+    n = x.shape[0]
+    k1 = np.empty(n)
+    k2 = np.empty(n)
+    k3 = np.empty(n)
+    k4 = np.empty(n)
+    derivative(x, u, p, k1)
+    derivative(x + 0.5 * dt * k1, u, p, k2)
+    derivative(x + 0.5 * dt * k2, u, p, k3)
+    derivative(x + dt * k3, u, p, k4)
+    out = x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    project(out, u, p)
+    return out
+
+
+@njit(cache=True)
+def rk4_steps(x, u, p, dt, n_steps):
+    """`n_steps` RK4 steps with u held; returns the final state."""
+    for _ in range(n_steps):
+        x = rk4_step(x, u, p, dt)
+    return x
+
+
+# ------------------------------------------------------------------------------------------------
+# Outputs a sensor or a controller needs (pure functions of the state)
+
+@njit(cache=True)
+def quat_to_euler(q):
+    """ZYX Euler angles (roll, pitch, yaw) of q = [w, x, y, z] (Fossen 2011 eq. 2.77)."""
+    w, a, b, c = q[0], q[1], q[2], q[3]
+    roll = math.atan2(2 * (w * a + b * c), 1 - 2 * (a * a + b * b))
+    sp = min(max(2 * (w * b - c * a), -1.0), 1.0)
+    pitch = math.asin(sp)
+    yaw = math.atan2(2 * (w * c + a * b), 1 - 2 * (b * b + c * c))
+    return roll, pitch, yaw
+
+
+def euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """q = q_z(yaw) q_y(pitch) q_x(roll), [w, x, y, z]."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array([
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ])
+
+
+@njit(cache=True)
+def specific_force(x, xdot, p):
+    """Accelerometer truth R^T (a_ned - [0, 0, g]) = v' + w x v - R^T [0, 0, g] (spec 5)."""
+    R = rotation(x[3:7])
+    c0, c1, c2 = cross(x[10], x[11], x[12], x[7], x[8], x[9])
+    g = p[P_G]
+    return np.array([
+        xdot[7] + c0 - g * R[2, 0],
+        xdot[8] + c1 - g * R[2, 1],
+        xdot[9] + c2 - g * R[2, 2],
+    ])
+
+
+def wrench_map(v: Vehicle, alpha=None, beta=None) -> np.ndarray:
+    """The 6 x 3k force/moment map: tau = B f, f = per-unit force vectors [fx, fy, fz] (body).
+
+    Column block i maps unit i's force to [F_i, r_i x F_i] (spec 3; PX4 control_allocator's
+    effectiveness matrix for free force vectors).
+    """
+    k = v.n_units
+    B = np.zeros((6, 3 * k))
+    for i, unit in enumerate(v.units):
+        rx, ry, rz = unit.position
+        S = np.array([[0.0, -rz, ry], [rz, 0.0, -rx], [-ry, rx, 0.0]])
+        B[0:3, 3 * i:3 * i + 3] = np.eye(3)
+        B[3:6, 3 * i:3 * i + 3] = S
+    return B
+
+
+def thrust_direction(v: Vehicle, alpha, beta) -> np.ndarray:
+    """d_i for every unit (k x 3) at joint angles alpha, beta (spec 3)."""
+    return np.array([
+        jet_frame(float(alpha[i]), float(beta[i]), u.neutral[0], u.neutral[1])[0]
+        for i, u in enumerate(v.units)
+    ])
+
+
+def effectiveness(v: Vehicle, alpha, beta) -> np.ndarray:
+    """The 6 x k map from thrust magnitudes to the body wrench at given joint angles."""
+    B = wrench_map(v)
+    d = thrust_direction(v, alpha, beta)
+    return np.column_stack([B[:, 3 * i:3 * i + 3] @ d[i] for i in range(v.n_units)])
+
+
+def thrust_newton(v: Vehicle, n, v_axial=0.0, inflow: bool | None = None) -> float:
+    """T(n, V_a) of one jet in newtons (seed 000 eq. 15), convenience for tests and tools."""
+    p = pack_params(v)
+    if inflow is not None:
+        p[ON_INFLOW] = 1.0 if inflow else 0.0
+    return float(jet_thrust(float(n), float(v_axial), p))

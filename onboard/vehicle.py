@@ -1,0 +1,422 @@
+"""Vehicle files: TOML in, frozen, validated parameter objects out (spec/vehicle-model.md).
+
+Field names are the vehicle-file keys themselves, so a fitted value keyed `hydro.added_mass`
+can be pasted back into the file; the units of every key are those of the spec and of the
+reference file `onboard/data/asr4.toml`, and each field's metadata says them.
+
+Every key is checked: an unknown or missing key, a wrong length, a negative mass, a NaN or an
+angle limit over pi raises `VehicleFileError` naming the file, the key and what was expected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+DEFAULT_VEHICLE = Path(__file__).parent / "data" / "asr4.toml"
+
+EFFECT_IDS = (
+    "thrust_inflow",
+    "motor_lag",
+    "servo_lag",
+    "azimuth_transient",
+    "surface_proximity",
+    "wall_proximity",
+    "current",
+)
+
+
+class VehicleFileError(ValueError):
+    """A vehicle file that cannot be used; the message names the file, key and expectation."""
+
+
+# --- key declarations --------------------------------------------------------------------------
+# A field's metadata says what the key must hold: `n` (vector length, None for a scalar),
+# `check` (one of the CHECKS below), `unit` (for messages and docs).
+
+def _key(unit: str, check: str = "finite", n: int | None = None, default: Any = dataclasses.MISSING):
+    return field(default=default, metadata={"unit": unit, "check": check, "n": n})
+
+
+CHECKS = {
+    "finite": (lambda v: True, "a finite number"),
+    "positive": (lambda v: v > 0, "a finite number > 0"),
+    "nonneg": (lambda v: v >= 0, "a finite number >= 0"),
+    "angle": (lambda v: 0 < v <= math.pi, "an angle in radians, 0 < value <= pi"),
+    "pwm": (lambda v: 500 <= v <= 2500, "a PWM width in microseconds (500..2500)"),
+    "channel": (lambda v: 1 <= v <= 16 and float(v).is_integer(), "a channel number 1..16"),
+}
+
+
+@dataclass(frozen=True)
+class Environment:
+    rho: float = _key("kg/m^3", "positive")
+    g: float = _key("m/s^2", "positive")
+    p_atm: float = _key("Pa", "positive")
+    surface_depth: float = _key("m")
+    floor_depth: float = _key("m")
+    current: tuple = _key("m/s NED", "finite", 3)
+
+
+@dataclass(frozen=True)
+class Body:
+    mass: float = _key("kg", "positive")
+    volume: float = _key("m^3", "positive")
+    radius: float = _key("m", "positive")
+    inertia: tuple = _key("kg m^2 (Ixx, Iyy, Izz about the CG)", "positive", 3)
+    cg: tuple = _key("m body FRD", "finite", 3)
+    cb: tuple = _key("m body FRD", "finite", 3)
+
+
+@dataclass(frozen=True)
+class Hydro:
+    added_mass: tuple = _key("kg, kg m^2 [surge..yaw]", "nonneg", 6)
+    linear_damping: tuple = _key("N s/m, N m s/rad [surge..yaw]", "nonneg", 6)
+    quadratic_damping: tuple = _key("N s^2/m^2, N m s^2/rad^2 [surge..yaw]", "nonneg", 6)
+
+
+@dataclass(frozen=True)
+class Thruster:
+    diameter: float = _key("m", "positive")
+    kt: tuple = _key("K(J) coefficients [kt0, kt1, kt2]", "finite", 3)
+    j_range: tuple = _key("advance ratio [min, max]", "finite", 2)
+    n_max: float = _key("rev/s", "positive")
+    motor_time_constant: float = _key("s", "positive")
+
+
+@dataclass(frozen=True)
+class Servo:
+    angle_limit: float = _key("rad", "angle")
+    rate_limit: float = _key("rad/s", "positive")
+    time_constant: float = _key("s", "positive")
+
+
+@dataclass(frozen=True)
+class Unit:
+    position: tuple = _key("m body FRD", "finite", 3)
+    neutral: tuple = _key("unit vector body FRD", "finite", 3)
+
+
+@dataclass(frozen=True)
+class Pwm:
+    jet_channels: tuple = _key("channel numbers, one per unit", "channel", -1)
+    azimuth_channels: tuple = _key("channel numbers, one per unit", "channel", -1)
+    elevation_channels: tuple = _key("channel numbers, one per unit", "channel", -1)
+    jet_range: tuple = _key("us [low, high]", "pwm", 2)
+    servo_range: tuple = _key("us [low, high]", "pwm", 2)
+
+
+@dataclass(frozen=True)
+class Sensors:
+    imu_rate: float = _key("Hz", "positive")
+    gyro_noise: float = _key("rad/s", "nonneg")
+    accel_noise: float = _key("m/s^2", "nonneg")
+    pressure_rate: float = _key("Hz", "positive")
+    pressure_noise: float = _key("Pa", "nonneg")
+    attitude_rate: float = _key("Hz", "positive")
+    attitude_noise: float = _key("rad", "nonneg")
+    gyro_bias: tuple = _key("rad/s", "finite", 3)
+    accel_bias: tuple = _key("m/s^2", "finite", 3)
+    delay: float = _key("s", "nonneg")
+
+
+@dataclass(frozen=True)
+class Effect:
+    enabled: bool = _key("", "bool")
+
+
+@dataclass(frozen=True)
+class AzimuthTransient:
+    enabled: bool = _key("", "bool")
+    gain_per_newton: float = _key("1/N", "nonneg")
+    f1x: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7)
+    f1y: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7)
+    m1z: tuple = _key("seed 004 eq. 6 [K, a, b, c, d]", "finite", 5)
+    f2x: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7)
+    f2z: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7)
+
+
+@dataclass(frozen=True)
+class WallProximity:
+    enabled: bool = _key("", "bool")
+    k_wall: float = _key("dimensionless", "nonneg")
+
+
+@dataclass(frozen=True)
+class Effects:
+    thrust_inflow: Effect
+    motor_lag: Effect
+    servo_lag: Effect
+    azimuth_transient: AzimuthTransient
+    surface_proximity: Effect
+    wall_proximity: WallProximity
+    current: Effect
+
+    def on(self, effect_id: str) -> bool:
+        return getattr(self, effect_id).enabled
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    name: str
+    environment: Environment
+    body: Body
+    hydro: Hydro
+    thruster: Thruster
+    servo: Servo
+    units: tuple  # of Unit
+    pwm: Pwm
+    sensors: Sensors
+    effects: Effects
+    source: str = "<memory>"
+
+    @property
+    def n_units(self) -> int:
+        return len(self.units)
+
+    def get(self, key: str) -> Any:
+        """Value of a dotted vehicle-file key, e.g. `hydro.added_mass`."""
+        obj: Any = self
+        for part in key.split("."):
+            obj = getattr(obj, "units" if part == "unit" else part)
+        return obj
+
+    def with_values(self, values: dict[str, Any]) -> "Vehicle":
+        """A new vehicle with dotted keys replaced (validated like a file), e.g. a fitted fragment."""
+        out = self
+        for key, value in values.items():
+            out = _replace_path(out, key.split("."), value, key)
+        return out
+
+    def with_effects(self, **enabled: bool) -> "Vehicle":
+        """A new vehicle with effects switched on or off by id."""
+        return self.with_values({f"effects.{k}.enabled": bool(v) for k, v in enabled.items()})
+
+
+SECTIONS = {
+    "environment": Environment,
+    "body": Body,
+    "hydro": Hydro,
+    "thruster": Thruster,
+    "servo": Servo,
+    "pwm": Pwm,
+    "sensors": Sensors,
+}
+EFFECT_CLASSES = {
+    eid: {"azimuth_transient": AzimuthTransient, "wall_proximity": WallProximity}.get(eid, Effect)
+    for eid in EFFECT_IDS
+}
+
+
+# --- loading -----------------------------------------------------------------------------------
+
+def load_vehicle(path: str | Path | None = None) -> Vehicle:
+    """Load and validate a vehicle TOML (default: the reference vehicle asr4)."""
+    path = Path(path) if path is not None else DEFAULT_VEHICLE
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise VehicleFileError(f"{path}: cannot read vehicle file: {exc.strerror or exc}") from exc
+    return parse_vehicle(text, source=str(path))
+
+
+def parse_vehicle(text: str, source: str = "<string>") -> Vehicle:
+    """Parse vehicle TOML text; every error names `source`, the key and what was expected."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise VehicleFileError(f"{source}: not valid TOML: {exc}") from exc
+    return vehicle_from_dict(doc, source)
+
+
+def vehicle_from_dict(doc: dict, source: str = "<dict>") -> Vehicle:
+    err = _Errors(source)
+    top = {"name", "unit", "effects", *SECTIONS}
+    for key in doc:
+        if key not in top:
+            err.unknown(key, sorted(top))
+    name = doc.get("name")
+    if not isinstance(name, str) or not name:
+        err.add("name", "a non-empty string", name)
+    sections = {}
+    for sec, cls in SECTIONS.items():
+        sections[sec] = _build(cls, doc.get(sec), sec, err)
+    raw_units = doc.get("unit")
+    units = []
+    if not isinstance(raw_units, list) or not raw_units:
+        err.add("unit", "one or more [[unit]] tables", raw_units)
+    else:
+        for i, raw in enumerate(raw_units):
+            units.append(_build(Unit, raw, f"unit[{i}]", err))
+    raw_effects = doc.get("effects")
+    effects = {}
+    if not isinstance(raw_effects, dict):
+        err.add("effects", "an [effects.*] table for each effect id: " + ", ".join(EFFECT_IDS), raw_effects)
+    else:
+        for key in raw_effects:
+            if key not in EFFECT_CLASSES:
+                err.unknown(f"effects.{key}", list(EFFECT_IDS))
+        for eid, cls in EFFECT_CLASSES.items():
+            effects[eid] = _build(cls, raw_effects.get(eid), f"effects.{eid}", err)
+    err.raise_if_any()
+    vehicle = Vehicle(
+        name=name, units=tuple(units), effects=Effects(**effects), source=source, **sections
+    )
+    _check_consistency(vehicle, err)
+    err.raise_if_any()
+    return vehicle
+
+
+def _build(cls, raw, where: str, err: "_Errors"):
+    if not isinstance(raw, dict):
+        err.add(where, f"a table with keys {', '.join(f.name for f in dataclasses.fields(cls))}", raw)
+        return None
+    names = {f.name for f in dataclasses.fields(cls)}
+    for key in raw:
+        if key not in names:
+            err.unknown(f"{where}.{key}", sorted(names))
+    values = {}
+    for f in dataclasses.fields(cls):
+        key = f"{where}.{f.name}"
+        if f.name not in raw:
+            err.add(key, f"{_expect(f)} ({f.metadata['unit']})".replace(" ()", ""), None, missing=True)
+            continue
+        ok, value = _coerce(raw[f.name], f)
+        if not ok:
+            err.add(key, _expect(f), raw[f.name])
+        values[f.name] = value
+    return cls(**values) if len(values) == len(names) else None
+
+
+def _expect(f) -> str:
+    check, n = f.metadata["check"], f.metadata["n"]
+    if check == "bool":
+        return "true or false"
+    what = CHECKS[check][1]
+    if n is None:
+        return what
+    if n == -1:
+        return f"a list of {what.replace('a ', '', 1)}s, one per unit"
+    return f"a list of {n} values, each {what}"
+
+
+def _coerce(value, f):
+    check, n = f.metadata["check"], f.metadata["n"]
+    if check == "bool":
+        return isinstance(value, bool), value
+    if n is None:
+        ok = _number_ok(value, check)
+        return ok, float(value) if ok else value
+    if not isinstance(value, list) or (n != -1 and len(value) != n) or not value:
+        return False, value
+    if not all(_number_ok(v, check) for v in value):
+        return False, value
+    return True, tuple(int(v) if check == "channel" else float(v) for v in value)
+
+
+def _number_ok(v, check) -> bool:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    return math.isfinite(v) and CHECKS[check][0](v)
+
+
+def _check_consistency(v: Vehicle, err: "_Errors") -> None:
+    n = v.n_units
+    for key in ("jet_channels", "azimuth_channels", "elevation_channels"):
+        if len(getattr(v.pwm, key)) != n:
+            err.add(f"pwm.{key}", f"{n} channels, one per [[unit]]", list(getattr(v.pwm, key)))
+    chans = v.pwm.jet_channels + v.pwm.azimuth_channels + v.pwm.elevation_channels
+    if len(set(chans)) != len(chans):
+        err.add("pwm", "each channel used once across jet/azimuth/elevation_channels", list(chans))
+    for key in ("jet_range", "servo_range"):
+        lo, hi = getattr(v.pwm, key)
+        if not lo < hi:
+            err.add(f"pwm.{key}", "[low, high] with low < high", [lo, hi])
+    lo, hi = v.thruster.j_range
+    if not lo < hi:
+        err.add("thruster.j_range", "[min, max] with min < max", [lo, hi])
+    for i, u in enumerate(v.units):
+        norm = math.sqrt(sum(c * c for c in u.neutral))
+        if abs(norm - 1.0) > 1e-3:
+            err.add(f"unit[{i}].neutral", "a unit vector (norm 1 within 1e-3)", list(u.neutral))
+        elif abs(u.neutral[2]) > 1e-3:
+            err.add(f"unit[{i}].neutral", "a horizontal vector (z component 0)", list(u.neutral))
+    if v.environment.floor_depth <= v.environment.surface_depth:
+        err.add("environment.floor_depth", "a NED z below surface_depth", v.environment.floor_depth)
+
+
+class _Errors:
+    def __init__(self, source: str):
+        self.source = source
+        self.lines: list[str] = []
+
+    def add(self, key: str, expected: str, got: Any, missing: bool = False) -> None:
+        if missing:
+            self.lines.append(f"{key}: missing; expected {expected}")
+        else:
+            self.lines.append(f"{key}: expected {expected}, got {got!r}")
+
+    def unknown(self, key: str, allowed: list) -> None:
+        self.lines.append(f"{key}: unknown key; allowed here: {', '.join(allowed)}")
+
+    def raise_if_any(self) -> None:
+        if self.lines:
+            head = f"{self.source}: invalid vehicle file"
+            raise VehicleFileError(head + "\n  " + "\n  ".join(self.lines))
+
+
+def _replace_path(obj, parts: list[str], value, full_key: str):
+    name = "units" if parts[0] == "unit" else parts[0]
+    if name.startswith("unit[") and isinstance(obj, Vehicle):
+        idx = int(name[5:-1])
+        units = list(obj.units)
+        units[idx] = _replace_path(units[idx], parts[1:], value, full_key)
+        return dataclasses.replace(obj, units=tuple(units))
+    if not dataclasses.is_dataclass(obj) or name not in {f.name for f in dataclasses.fields(obj)}:
+        raise VehicleFileError(f"{getattr(obj, 'source', '<vehicle>')}: {full_key}: unknown key")
+    if len(parts) > 1:
+        new = _replace_path(getattr(obj, name), parts[1:], value, full_key)
+        return dataclasses.replace(obj, **{name: new})
+    f = next(f for f in dataclasses.fields(obj) if f.name == name)
+    if "check" in f.metadata:
+        raw = list(value) if isinstance(value, (tuple, list)) or hasattr(value, "tolist") else value
+        if hasattr(raw, "tolist"):
+            raw = raw.tolist()
+        if isinstance(raw, list):
+            raw = [x.item() if hasattr(x, "item") else x for x in raw]
+        elif hasattr(raw, "item"):
+            raw = raw.item()
+        ok, coerced = _coerce(raw, f)
+        if not ok:
+            raise VehicleFileError(f"{full_key}: expected {_expect(f)}, got {value!r}")
+        value = coerced
+    return dataclasses.replace(obj, **{name: value})
+
+
+def fragment_toml(values: dict[str, Any]) -> str:
+    """A vehicle-file fragment (TOML) for dotted keys, e.g. fitted parameters to paste back."""
+    tables: dict[str, list[str]] = {}
+    for key, value in values.items():
+        table, _, leaf = key.rpartition(".")
+        tables.setdefault(table, []).append(f"{leaf} = {_toml_value(value)}")
+    return "\n".join(f"[{t}]\n" + "\n".join(lines) + "\n" for t, lines in tables.items())
+
+
+def _toml_value(v) -> str:
+    if hasattr(v, "tolist"):
+        v = v.tolist()
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, float):
+        return repr(float(f"{v:.6g}"))
+    return repr(v)
