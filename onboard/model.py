@@ -71,6 +71,10 @@ P_ON = _at("effects.*.enabled", len(EFFECT_IDS))  # 1.0 / 0.0 in EFFECT_IDS orde
 # b1 s^3 + b2 s^2 + b3 s + b4.
 TRANSIENT_ROWS = ("f1x", "f1y", "m1z", "f2x", "f2z")
 P_TF = _at("effects.azimuth_transient.<rows as state space>", 8 * len(TRANSIENT_ROWS))
+# A test rig, not part of the vehicle: a linear spring in NED pulling the body origin to an
+# anchor (seed 001 free-decay rig). Zero unless a `Plant` is built with `rig_stiffness`.
+P_RIG_K = _at("rig.stiffness", 3)  # N/m along NED x, y, z
+P_RIG_ANCHOR = _at("rig.anchor", 3)  # m NED
 P_UNITS = _at("unit[*].position+neutral", 0)  # then 6 values per unit
 
 ON_INFLOW, ON_MOTOR, ON_SERVO, ON_TRANSIENT, ON_SURFACE, ON_WALL, ON_CURRENT = (
@@ -154,6 +158,8 @@ def pack_params(v: Vehicle) -> np.ndarray:
             at = v.effects.azimuth_transient
             for row in TRANSIENT_ROWS:
                 out += list(_canonical(*transfer_function(row, getattr(at, row))))
+        elif key.startswith("rig."):
+            out += [0.0] * size
         elif key.startswith("unit[*]"):
             for u in v.units:
                 out += list(u.position) + list(u.neutral)
@@ -383,6 +389,18 @@ def restoring(R, p, s_buoy):
 
 
 @njit(cache=True)
+def rig_spring(x, R, p):
+    """Test-rig spring force f = -K (p - p_anchor) in NED, expressed in the body (seed 001 eq. 6)."""
+    out = np.zeros(6)
+    f0 = -p[P_RIG_K] * (x[0] - p[P_RIG_ANCHOR])
+    f1 = -p[P_RIG_K + 1] * (x[1] - p[P_RIG_ANCHOR + 1])
+    f2 = -p[P_RIG_K + 2] * (x[2] - p[P_RIG_ANCHOR + 2])
+    for i in range(3):
+        out[i] = R[0, i] * f0 + R[1, i] * f1 + R[2, i] * f2
+    return out
+
+
+@njit(cache=True)
 def jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust_out):
     """tau_jets + tau_transient of k units; writes actuator and filter derivatives into xdot.
 
@@ -483,7 +501,7 @@ def derivative(x, u, p, xdot):
     tau = np.zeros(6)
     thrust = np.empty(k)
     jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust)
-    rhs = tau - coriolis_times_nu(M, nu_r) - damping(nu_r, p) + restoring(R, p, s)
+    rhs = tau - coriolis_times_nu(M, nu_r) - damping(nu_r, p) + restoring(R, p, s) + rig_spring(x, R, p)
     nu_r_dot = solve6(M, rhs)
     # nu' = nu_r' + nu_c', nu_c' = -w x nu_c
     w0, w1, w2 = nu[3], nu[4], nu[5]

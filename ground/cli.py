@@ -1,0 +1,47 @@
+"""`jetloop`: the one command line for the whole package; each subcommand is its own module.
+
+A subcommand module defines `configure(parser)` (its arguments) and `run(args) -> int`.
+A module is imported only when its subcommand runs, so `jetloop onboard` on the robot never
+imports the ground station's plotting stack.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help). Add a subcommand by adding a line here.
+SUBCOMMANDS = {
+    "sim": ("hil.sim", "open-loop simulation of a commands CSV to a .tlog recording"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    top = argparse.ArgumentParser(
+        prog="jetloop",
+        description="Firmware-in-the-loop for small underwater robots driven by vectored water-jets.",
+        epilog="commands:\n" + "\n".join(f"  {n:10s} {h}" for n, (_, h) in SUBCOMMANDS.items())
+        + "\n\n'jetloop COMMAND --help' shows a command's options.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    top.add_argument("command", choices=sorted(SUBCOMMANDS), metavar="COMMAND")
+    if not argv or argv[0] not in SUBCOMMANDS:
+        top.parse_args(argv[:1])  # prints usage / help / the unknown-command error
+        return 2
+    name = argv[0]
+    module_name, help_text = SUBCOMMANDS[name]
+    module = importlib.import_module(module_name)
+    parser = argparse.ArgumentParser(prog=f"jetloop {name}", description=help_text)
+    module.configure(parser)
+    args = parser.parse_args(argv[1:])
+    try:
+        return int(module.run(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
