@@ -1,0 +1,260 @@
+"""A MAVLink link over UDP or a serial line, chosen by a connection string; never raises on garbage.
+
+Connection strings (the MAVProxy / pymavlink spelling):
+    udpin:HOST:PORT     listen on HOST:PORT; replies go to whoever spoke last (port 0: any free port)
+    udpout:HOST:PORT    send to HOST:PORT from an ephemeral local port; receive on that port
+    /dev/ttyXXX:BAUD    a serial line through pyserial (also `serial:/dev/ttyXXX:BAUD`)
+
+The codec is one pymavlink `MAVLink` parser object built from the ardupilotmega dialect module
+itself, not from pymavlink's process-wide dialect chosen by an environment variable (STYLE.md).
+`Link.recv` returns one decoded message or None; corrupt input is counted and skipped:
+`garbage_bytes` (bytes that did not end up in a good packet), `bad_packets` (framed packets
+whose CRC or length failed) and `unknown_packets` (ids the dialect does not know). After a bad packet the parser restarts one byte after its start
+marker, so a truncated packet does not swallow the good packet that follows it.
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+from collections import deque
+from dataclasses import dataclass
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+HEADER_V1_MIN = mavlink.HEADER_LEN_V1 + 2
+
+
+class LinkError(ValueError):
+    """A connection string that cannot be opened; the message says what was expected."""
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    kind: str  # "udpin", "udpout" or "serial"
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 0
+
+
+def parse_connection(text: str) -> Endpoint:
+    """`udpin:HOST:PORT`, `udpout:HOST:PORT`, `[serial:]/dev/ttyXXX:BAUD` -> Endpoint."""
+    s = str(text).strip()
+    expected = "expected udpin:HOST:PORT, udpout:HOST:PORT or /dev/ttyXXX:BAUD"
+    for prefix, kind in (("udpin:", "udpin"), ("udp:", "udpin"), ("udpout:", "udpout")):
+        if s.startswith(prefix):
+            host, sep, port = s[len(prefix):].rpartition(":")
+            if not sep or not host or not port.isdigit() or int(port) > 65535:
+                raise LinkError(f"link {text!r}: {expected}")
+            return Endpoint(kind, host=host, port=int(port))
+    if s.startswith("serial:"):
+        s = s[len("serial:"):]
+    if s.startswith("/") or s.upper().startswith("COM"):
+        device, sep, baud = s.rpartition(":")
+        if not sep or not device or not baud.isdigit() or int(baud) <= 0:
+            raise LinkError(f"link {text!r}: serial needs a baud rate, {expected}")
+        return Endpoint("serial", device=device, baud=int(baud))
+    raise LinkError(f"link {text!r}: {expected}")
+
+
+class _Udp:
+    def __init__(self, ep: Endpoint):
+        try:
+            self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            if ep.kind == "udpin":
+                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                self.sock.bind((ep.host, ep.port))
+                self.peer = None
+            else:
+                self.sock.bind(("0.0.0.0" if ep.host not in ("127.0.0.1", "localhost") else ep.host, 0))
+                self.peer = (socket.gethostbyname(ep.host), ep.port)
+        except OSError as exc:
+            raise LinkError(f"link {ep.kind}:{ep.host}:{ep.port}: cannot open UDP socket: {exc.strerror or exc}") from exc
+        self.sock.setblocking(False)
+        self.fixed_peer = ep.kind == "udpout"
+
+    @property
+    def local_address(self):
+        return self.sock.getsockname()
+
+    def write(self, data: bytes) -> bool:
+        if self.peer is None:
+            return False  # udpin: nobody has spoken yet
+        try:
+            self.sock.sendto(data, self.peer)
+            return True
+        except OSError:
+            return False  # e.g. ICMP port unreachable reported late: the link stays up
+
+    def read(self, timeout_s: float) -> bytes:
+        try:
+            ready, _, _ = select.select([self.sock], [], [], max(timeout_s, 0.0))
+            if not ready:
+                return b""
+            data, addr = self.sock.recvfrom(65535)
+        except (OSError, ValueError):
+            return b""
+        if not self.fixed_peer:
+            self.peer = addr
+        return data
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class _Serial:
+    def __init__(self, ep: Endpoint):
+        import serial  # pyserial; imported here so UDP-only use never needs it
+
+        try:
+            self.port = serial.Serial(ep.device, ep.baud, timeout=0, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LinkError(f"link {ep.device}:{ep.baud}: cannot open serial port: {exc}") from exc
+        self.local_address = (ep.device, ep.baud)
+
+    def write(self, data: bytes) -> bool:
+        try:
+            self.port.write(data)
+            return True
+        except Exception:  # SerialTimeoutException, OSError on a vanished device: keep running
+            return False
+
+    def read(self, timeout_s: float) -> bytes:
+        try:
+            if not self.port.in_waiting:
+                ready, _, _ = select.select([self.port.fileno()], [], [], max(timeout_s, 0.0))
+                if not ready:
+                    return b""
+            return self.port.read(max(self.port.in_waiting, 1))
+        except Exception:
+            return b""
+
+    def close(self) -> None:
+        self.port.close()
+
+
+class Link:
+    """send(msg) / recv(timeout_s) of MAVLink messages over one transport; counts what was bad."""
+
+    def __init__(self, connection: str, source_system: int = 1, source_component: int = 1):
+        self.endpoint = parse_connection(connection)
+        self.connection = connection
+        self._io = _Serial(self.endpoint) if self.endpoint.kind == "serial" else _Udp(self.endpoint)
+        self.mav = mavlink.MAVLink(None, srcSystem=source_system, srcComponent=source_component)
+        self.mav.robust_parsing = True
+        self._ready: deque = deque()
+        self.bytes_in = 0
+        self.good_bytes = 0
+        self.bad_packets = 0
+        self.unknown_packets = 0
+        self.packets_in = 0
+        self.packets_out = 0
+        self.send_failures = 0
+
+    # -- properties ---------------------------------------------------------------------------
+    @property
+    def local_address(self):
+        return self._io.local_address
+
+    @property
+    def garbage_bytes(self) -> int:
+        """Bytes received that are neither in a good packet nor waiting in the parser."""
+        pending = len(self.mav.buf) - self.mav.buf_index
+        return self.bytes_in - self.good_bytes - pending
+
+    # -- sending ------------------------------------------------------------------------------
+    def pack(self, msg) -> bytes:
+        """The wire bytes of `msg` with this link's system/component and sequence number."""
+        buf = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return bytes(buf)
+
+    def send(self, msg) -> bytes:
+        """Send one message; returns its wire bytes (for a recording). Never raises on IO errors."""
+        buf = self.pack(msg)
+        if self._io.write(buf):
+            self.packets_out += 1
+        else:
+            self.send_failures += 1
+        return buf
+
+    def write_raw(self, data: bytes) -> None:
+        """Put raw bytes on the line (tests and fault injection)."""
+        self._io.write(bytes(data))
+
+    # -- receiving ----------------------------------------------------------------------------
+    def recv(self, timeout_s: float = 0.0):
+        """The next good message, waiting up to `timeout_s` for bytes; None when none came."""
+        if self._ready:
+            return self._ready.popleft()
+        data = self._io.read(timeout_s)
+        if data:
+            self.feed(data)
+        # drain what is already in the OS buffer without waiting again
+        while not self._ready:
+            data = self._io.read(0.0)
+            if not data:
+                break
+            self.feed(data)
+        return self._ready.popleft() if self._ready else None
+
+    def feed(self, data: bytes) -> None:
+        """Parse bytes (from the transport or a replay) into the queue of good messages."""
+        self.bytes_in += len(data)
+        m = self._parse(bytes(data))
+        while m is not None:
+            self._accept(m)
+            m = self._parse(b"")
+
+    def _parse(self, data: bytes):
+        try:
+            return self.mav.parse_char(data)
+        except Exception:  # pymavlink raises on a few malformed headers even when robust
+            self.mav.buf_index = min(self.mav.buf_index + 1, len(self.mav.buf))
+            self._resync(b"")
+            return None
+
+    def _accept(self, m) -> None:
+        if m.get_type() == "BAD_DATA":
+            if not str(m.reason).startswith("Bad prefix"):
+                self.bad_packets += 1
+                self._resync(bytes(m.data)[1:])
+            return
+        if isinstance(m, mavlink.MAVLink_unknown):
+            # pymavlink cannot check the CRC of an id it does not know, so a truncated packet can
+            # pose as one while swallowing the next good packet: rescan it like a bad packet.
+            self.unknown_packets += 1
+            self._resync(bytes(m.get_msgbuf())[1:])
+            return
+        self.packets_in += 1
+        self.good_bytes += len(m.get_msgbuf())
+        self._ready.append(m)
+
+    def _resync(self, rescan: bytes) -> None:
+        """Restart parsing at `rescan` + what is still unparsed (one byte past a bad packet's start)."""
+        mav = self.mav
+        rest = bytes(mav.buf[mav.buf_index:])
+        mav.buf = bytearray(rescan + rest)
+        mav.buf_index = 0
+        mav.expected_length = HEADER_V1_MIN
+        mav.have_prefix_error = False
+
+    def stats(self) -> dict:
+        return {
+            "packets_in": self.packets_in,
+            "packets_out": self.packets_out,
+            "bad_packets": self.bad_packets,
+            "unknown_packets": self.unknown_packets,
+            "garbage_bytes": self.garbage_bytes,
+            "send_failures": self.send_failures,
+        }
+
+    def close(self) -> None:
+        self._io.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
