@@ -194,6 +194,9 @@ class Vehicle:
         out = self
         for key, value in values.items():
             out = _replace_path(out, key.split("."), value, key)
+        err = _Errors(out.source)  # cross-key rules too (unit neutral, channel counts, ranges)
+        _check_consistency(out, err)
+        err.raise_if_any()
         return out
 
     def with_effects(self, **enabled: bool) -> "Vehicle":
@@ -333,9 +336,13 @@ def _check_consistency(v: Vehicle, err: "_Errors") -> None:
     for key in ("jet_channels", "azimuth_channels", "elevation_channels"):
         if len(getattr(v.pwm, key)) != n:
             err.add(f"pwm.{key}", f"{n} channels, one per [[unit]]", list(getattr(v.pwm, key)))
-    chans = v.pwm.jet_channels + v.pwm.azimuth_channels + v.pwm.elevation_channels
-    if len(set(chans)) != len(chans):
-        err.add("pwm", "each channel used once across jet/azimuth/elevation_channels", list(chans))
+    first_use: dict[int, str] = {}  # a channel drives one joint or jet: name where it repeats
+    for key in ("jet_channels", "azimuth_channels", "elevation_channels"):
+        for c in getattr(v.pwm, key):
+            if c in first_use:
+                err.add(f"pwm.{key}", f"each channel used once (channel {c} is already in "
+                        f"{first_use[c]})", list(getattr(v.pwm, key)))
+            first_use.setdefault(c, f"pwm.{key}")
     for key in ("jet_range", "servo_range"):
         lo, hi = getattr(v.pwm, key)
         if not lo < hi:
