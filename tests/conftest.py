@@ -1,0 +1,39 @@
+"""Shared test fixtures: the reference vehicle and small helpers to vary it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from onboard.vehicle import EFFECT_IDS, Vehicle, load_vehicle
+
+# The vehicle file of the shared project tree (spec/vehicle-model.md's reference vehicle).
+SHARED_VEHICLE = Path("/work/shared/vehicles/asr4.toml")
+
+
+@pytest.fixture(scope="session")
+def vehicle() -> Vehicle:
+    """The packaged reference vehicle asr4, every effect as in its file (all on)."""
+    return load_vehicle()
+
+
+def only_effects(vehicle: Vehicle, *effect_ids: str) -> Vehicle:
+    """`vehicle` with exactly the named effects on and every other effect off."""
+    unknown = set(effect_ids) - set(EFFECT_IDS)
+    if unknown:
+        raise ValueError(f"unknown effect ids {sorted(unknown)}; known: {EFFECT_IDS}")
+    return vehicle.with_effects(**{e: e in effect_ids for e in EFFECT_IDS})
+
+
+def neutrally_buoyant(vehicle: Vehicle) -> Vehicle:
+    """`vehicle` with its volume set so that rho g V = m g (buoyancy equals weight)."""
+    return vehicle.with_values({"body.volume": vehicle.body.mass / vehicle.environment.rho})
+
+
+@pytest.fixture(scope="session")
+def reference_text() -> str:
+    """The text of the packaged reference vehicle file, for tests that edit it."""
+    from onboard.vehicle import DEFAULT_VEHICLE
+
+    return DEFAULT_VEHICLE.read_text(encoding="utf-8")

@@ -1,0 +1,288 @@
+"""Vehicle files: the reference loads, and every kind of bad input is one clear VehicleFileError.
+
+Each bad-file case edits one line of the reference file, so the error must name the file, the
+dotted key of that one line and what the key must hold, and nothing else may be reported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+
+import pytest
+
+from conftest import SHARED_VEHICLE
+from onboard.vehicle import (
+    DEFAULT_VEHICLE,
+    EFFECT_IDS,
+    VehicleFileError,
+    fragment_toml,
+    load_vehicle,
+    parse_vehicle,
+)
+
+
+def edited(text: str, old: str, new: str) -> str:
+    """`text` with the single occurrence of `old` replaced by `new` (fails if not exactly one)."""
+    assert text.count(old) == 1, f"{old!r} occurs {text.count(old)} times in the reference file"
+    return text.replace(old, new)
+
+
+def load_error(tmp_path, text: str) -> tuple[str, str]:
+    """Write `text` as a vehicle file, load it, return (path, message) of the one error raised."""
+    path = tmp_path / "bad_vehicle.toml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(VehicleFileError) as info:
+        load_vehicle(path)
+    assert type(info.value) is VehicleFileError
+    return str(path), str(info.value)
+
+
+def problem_lines(message: str) -> list[str]:
+    """The per-key lines of a vehicle-file error (the first line is the file header)."""
+    return [ln.strip() for ln in message.splitlines()[1:] if ln.strip()]
+
+
+# --- the reference vehicle ------------------------------------------------------------------
+
+def test_reference_vehicle_loads_with_its_numbers(vehicle):
+    assert vehicle.name == "asr4"
+    assert vehicle.source == str(DEFAULT_VEHICLE)
+    assert vehicle.n_units == 4
+    assert vehicle.body.mass == 6.5
+    assert vehicle.body.cb == (0.0, 0.0, -0.02)
+    assert vehicle.hydro.added_mass == (3.3, 3.3, 4.1, 0.006, 0.006, 0.002)
+    assert vehicle.thruster.kt == (0.350165, -0.30192, 0.20207)
+    assert vehicle.units[2].position == (-0.07778, -0.07778, 0.07)
+    assert vehicle.pwm.elevation_channels == (9, 10, 11, 12)
+    assert all(vehicle.effects.on(e) for e in EFFECT_IDS)
+    assert vehicle.effects.wall_proximity.k_wall == 0.375
+    assert vehicle.get("hydro.linear_damping") == (1.8, 1.8, 2.6, 0.08, 0.08, 0.05)
+
+
+def test_packaged_default_equals_shared_reference_file():
+    """onboard/data/asr4.toml (what the robot carries) holds the shared reference's values.
+
+    Outside the project tree the shared file is absent; then the packaged file must still
+    load (checked above), and this comparison has nothing to compare against.
+    """
+    if not SHARED_VEHICLE.exists():
+        return
+    packaged = tomllib.loads(DEFAULT_VEHICLE.read_text(encoding="utf-8"))
+    shared = tomllib.loads(SHARED_VEHICLE.read_text(encoding="utf-8"))
+    assert packaged == shared
+    assert dataclasses.replace(load_vehicle(SHARED_VEHICLE), source="x") == dataclasses.replace(
+        load_vehicle(), source="x"
+    )
+
+
+# --- one bad line, one clear error ----------------------------------------------------------
+
+BAD_LINES = [
+    # (case, old line, new line, dotted key named, words of the expectation)
+    ("unknown top-level key", 'name = "asr4"', 'name = "asr4"\ncolour = "yellow"',
+     "colour", "unknown key"),
+    ("unknown section key", "mass = 6.5 ", "mass = 6.5\nmasss = 6.5 ",
+     "body.masss", "unknown key"),
+    ("unknown effect", "[effects.current]", "[effects.magic]\nenabled = true\n\n[effects.current]",
+     "effects.magic", "unknown key"),
+    ("unknown key inside an effect", "k_wall = 0.375", "k_wall = 0.375\nk_wal = 0.2",
+     "effects.wall_proximity.k_wal", "unknown key"),
+    ("missing key", "radius = 0.16 ", "# radius removed ",
+     "body.radius", "missing"),
+    ("missing effect key", "k_wall = 0.375", "# k_wall removed",
+     "effects.wall_proximity.k_wall", "missing"),
+    ("wrong vector length", "inertia = [0.060, 0.060, 0.075]", "inertia = [0.060, 0.060]",
+     "body.inertia", "a list of 3 values"),
+    ("negative mass", "mass = 6.5 ", "mass = -6.5 ",
+     "body.mass", "> 0"),
+    ("NaN", "rho = 1000.0 ", "rho = nan ",
+     "environment.rho", "finite"),
+    ("inf", "n_max = 83.3 ", "n_max = inf ",
+     "thruster.n_max", "finite"),
+    ("NaN inside a vector", "current = [0.0, 0.0, 0.0]", "current = [0.0, nan, 0.0]",
+     "environment.current", "finite"),
+    ("angle limit given in degrees", "angle_limit = 1.3963 ", "angle_limit = 80 ",
+     "servo.angle_limit", "radians"),
+    ("string for a number", "mass = 6.5 ", 'mass = "6.5" ',
+     "body.mass", "a finite number"),
+    ("boolean as number", "rate_limit = 5.0 ", "rate_limit = true ",
+     "servo.rate_limit", "a finite number"),
+    ("boolean for enabled given as number", "[effects.motor_lag]\nenabled = true",
+     "[effects.motor_lag]\nenabled = 1", "effects.motor_lag.enabled", "true or false"),
+    ("non-unit neutral", "neutral = [-0.70711, 0.70711, 0.0]", "neutral = [-1.0, 1.0, 0.0]",
+     "unit[1].neutral", "unit vector"),
+    ("pwm channel count mismatch", "jet_channels = [1, 2, 3, 4]", "jet_channels = [1, 2, 3]",
+     "pwm.jet_channels", "4 channels"),
+    ("duplicate channel", "elevation_channels = [9, 10, 11, 12]",
+     "elevation_channels = [9, 10, 11, 4]", "pwm.elevation_channels", "once"),
+]
+
+
+@pytest.mark.parametrize("case,old,new,key,expect", BAD_LINES, ids=[c[0] for c in BAD_LINES])
+def test_one_bad_line_gives_one_error_naming_file_key_and_expectation(
+    tmp_path, reference_text, case, old, new, key, expect
+):
+    path, msg = load_error(tmp_path, edited(reference_text, old, new))
+    assert path in msg.splitlines()[0], msg
+    lines = problem_lines(msg)
+    assert len(lines) == 1, f"{case}: expected one problem, got:\n{msg}"
+    assert lines[0].startswith(key + ":"), f"{case}: key {key!r} not named first in {lines[0]!r}"
+    assert expect in lines[0], f"{case}: expectation {expect!r} not in {lines[0]!r}"
+
+
+def test_angle_limit_error_says_the_allowed_range(tmp_path, reference_text):
+    _, msg = load_error(tmp_path, edited(reference_text, "angle_limit = 1.3963 ", "angle_limit = 80 "))
+    assert "<= pi" in msg and "80" in msg
+
+
+def test_every_problem_of_a_file_is_reported_at_once(tmp_path, reference_text):
+    text = edited(reference_text, "mass = 6.5 ", "mass = -1.0 ")
+    text = edited(text, "rate_limit = 5.0 ", 'rate_limit = "fast" ')
+    _, msg = load_error(tmp_path, text)
+    lines = problem_lines(msg)
+    assert len(lines) == 2
+    assert lines[0].startswith("body.mass:") and lines[1].startswith("servo.rate_limit:")
+
+
+def test_invalid_toml_names_file_and_place(tmp_path, reference_text):
+    path, msg = load_error(tmp_path, edited(reference_text, "mass = 6.5 ", "mass = = 6.5 "))
+    assert path in msg
+    assert "not valid TOML" in msg
+    # tomllib reports the line: the edited line is the one holding `mass`
+    line_no = reference_text.splitlines().index(
+        next(ln for ln in reference_text.splitlines() if ln.startswith("mass = 6.5"))
+    ) + 1
+    assert f"line {line_no}" in msg
+
+
+@pytest.mark.parametrize("kind", ["missing file", "directory"])
+def test_unreadable_path_is_a_vehicle_file_error(tmp_path, kind):
+    path = tmp_path / "nowhere.toml" if kind == "missing file" else tmp_path
+    with pytest.raises(VehicleFileError) as info:
+        load_vehicle(path)
+    assert str(path) in str(info.value)
+    assert "cannot read" in str(info.value)
+
+
+def test_parse_vehicle_names_its_source(reference_text):
+    with pytest.raises(VehicleFileError) as info:
+        parse_vehicle(edited(reference_text, "mass = 6.5 ", "mass = 0.0 "), source="fitted.toml")
+    assert str(info.value).startswith("fitted.toml:")
+    assert "body.mass" in str(info.value)
+
+
+# --- effects switched off, with_effects, with_values ------------------------------------------
+
+@pytest.mark.parametrize("effect_id", EFFECT_IDS)
+def test_each_effect_switches_off_in_the_file(tmp_path, reference_text, effect_id):
+    head = f"[effects.{effect_id}]"
+    start = reference_text.index(head)
+    at = reference_text.index("enabled = true", start)
+    text = reference_text[:at] + "enabled = false" + reference_text[at + len("enabled = true"):]
+    path = tmp_path / "off.toml"
+    path.write_text(text, encoding="utf-8")
+    v = load_vehicle(path)
+    assert not v.effects.on(effect_id)
+    assert all(v.effects.on(e) for e in EFFECT_IDS if e != effect_id)
+
+
+@pytest.mark.parametrize("effect_id", EFFECT_IDS)
+def test_with_effects_switches_one_and_keeps_the_rest(vehicle, effect_id):
+    off = vehicle.with_effects(**{effect_id: False})
+    assert not off.effects.on(effect_id)
+    assert all(off.effects.on(e) for e in EFFECT_IDS if e != effect_id)
+    assert vehicle.effects.on(effect_id), "with_effects must not change the original"
+    assert off.with_effects(**{effect_id: True}) == vehicle
+
+
+def test_with_effects_rejects_an_unknown_effect(vehicle):
+    with pytest.raises(VehicleFileError, match="effects.magic"):
+        vehicle.with_effects(magic=False)
+
+
+def test_with_values_replaces_dotted_keys(vehicle):
+    v = vehicle.with_values({
+        "body.mass": 7.25,
+        "hydro.added_mass": [3.0, 3.1, 4.0, 0.01, 0.01, 0.003],
+        "effects.wall_proximity.k_wall": 0.5,
+        "unit[2].position": [-0.08, -0.08, 0.06],
+    })
+    assert v.body.mass == 7.25
+    assert v.hydro.added_mass == (3.0, 3.1, 4.0, 0.01, 0.01, 0.003)
+    assert v.effects.wall_proximity.k_wall == 0.5
+    assert v.units[2].position == (-0.08, -0.08, 0.06)
+    assert v.units[1] == vehicle.units[1]
+    assert vehicle.body.mass == 6.5
+
+
+@pytest.mark.parametrize("key,value,expect", [
+    ("body.mass", -1.0, "> 0"),
+    ("body.inertia", [0.06, 0.06], "3 values"),
+    ("hydro.added_mass", [float("nan")] * 6, "finite"),
+    ("servo.angle_limit", 80.0, "radians"),
+    ("thruster.n_max", True, "a finite number"),
+    ("effects.motor_lag.enabled", "yes", "true or false"),
+])
+def test_with_values_validates_like_a_file(vehicle, key, value, expect):
+    with pytest.raises(VehicleFileError) as info:
+        vehicle.with_values({key: value})
+    assert key in str(info.value) and expect in str(info.value)
+
+
+def test_with_values_rejects_an_unknown_key(vehicle):
+    with pytest.raises(VehicleFileError, match="hydro.added_mas"):
+        vehicle.with_values({"hydro.added_mas": [0.0] * 6})
+
+
+@pytest.mark.parametrize("key,value,expect", [
+    ("unit[0].neutral", [2.0, 0.0, 0.0], "unit vector"),
+    ("pwm.jet_channels", [1, 2, 3], "4 channels"),
+    ("thruster.j_range", [0.5, 0.1], "min < max"),
+])
+def test_with_values_checks_consistency_like_a_file(vehicle, key, value, expect):
+    with pytest.raises(VehicleFileError) as info:
+        vehicle.with_values({key: value})
+    assert key in str(info.value) and expect in str(info.value)
+
+
+# --- fragments --------------------------------------------------------------------------------
+
+def test_fragment_toml_parses_back_to_the_same_values(vehicle):
+    import numpy as np
+
+    values = {
+        "hydro.added_mass": np.array([3.31, 3.29, 4.6, 0.0061, 0.006, 0.0021]),
+        "hydro.linear_damping": (1.8, 1.8, 2.6, 0.08, 0.08, 0.05),
+        "body.mass": np.float64(6.75),
+        "effects.wall_proximity.k_wall": 0.4125,
+        "effects.motor_lag.enabled": False,
+        "thruster.motor_time_constant": 0.0912345,
+    }
+    text = fragment_toml(values)
+    doc = tomllib.loads(text)
+    flat = {}
+    for table, body in doc.items():
+        stack = [(table, body)]
+        while stack:
+            prefix, node = stack.pop()
+            for k, val in node.items():
+                if isinstance(val, dict):
+                    stack.append((f"{prefix}.{k}", val))
+                else:
+                    flat[f"{prefix}.{k}"] = val
+    assert set(flat) == set(values)
+    for key, want in values.items():
+        got = flat[key]
+        if isinstance(want, bool):
+            assert got is want
+        elif np.ndim(want):
+            assert np.allclose(got, want, rtol=1e-6, atol=0)
+        else:
+            assert math.isclose(got, float(want), rel_tol=1e-6)
+    # ... and the parsed fragment goes back into a vehicle
+    v = vehicle.with_values(flat)
+    assert v.body.mass == 6.75
+    assert not v.effects.on("motor_lag")
+    assert v.hydro.added_mass[2] == 4.6
