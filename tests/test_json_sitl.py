@@ -1,0 +1,185 @@
+"""ArduPilot SITL JSON interface: a client that sends servo frames exactly as
+libraries/SITL/examples/JSON/readme.md and SIM_JSON.cpp define them and reads the replies the way
+SIM_JSON.cpp does (newline framing, strstr + sscanf("[%f, %f, %f]"))."""
+
+from __future__ import annotations
+
+import re
+import socket
+import struct
+import threading
+
+import numpy as np
+import pytest
+
+from hil.json_sitl import (
+    MAGIC_16,
+    MAGIC_32,
+    JsonSitlBackend,
+    PacketError,
+    command_from_pwm,
+    pack_servo_packet,
+    parse_servo_packet,
+)
+from onboard.vehicle import load_vehicle
+
+V = load_vehicle()
+
+# SIM_JSON.h keytable: (section, key, kind, required)
+KEYTABLE = [
+    ("", "timestamp", "double", True),
+    ("imu", "gyro", "vec3", True),
+    ("imu", "accel_body", "vec3", True),
+    ("", "position", "vec3", True),
+    ("", "attitude", "vec3", False),
+    ("", "quaternion", "vec4", False),
+    ("", "velocity", "vec3", True),
+]
+NUM = r"([-+0-9.eE]+)"
+
+
+def sitl_frame(frame_rate: int, frame_count: int, pwm, magic: int = MAGIC_16) -> bytes:
+    """The servo packet as SIM_JSON.cpp's struct servo_packet lays it out (little-endian, no padding)."""
+    n = 16 if magic == MAGIC_16 else 32
+    pwm = list(pwm) + [0] * (n - len(pwm))
+    return struct.pack("<HHI%dH" % n, magic, frame_rate, frame_count, *pwm)
+
+
+def sitl_parse(reply: bytes) -> dict:
+    """Parse one reply like SIM_JSON::recv_fdm + parse_sensors: the text between the last two newlines,
+    each key found with strstr after its section, its value right after `"key":`."""
+    text = reply.decode()
+    assert text.startswith("\n") and text.endswith("\n"), "SIM_JSON needs a newline before and after"
+    line = text.strip("\n")
+    assert "\n" not in line
+    out = {}
+    for section, key, kind, required in KEYTABLE:
+        p = line.find(section) if section else 1  # strstr(json, "") then +1 skips '{'
+        if p < 0:
+            assert not required, f"missing section {section}"
+            continue
+        p += len(section) + 1 if section else 0
+        q = line.find(key, p)
+        if q < 0:
+            assert not required, f"missing key {section}/{key}"
+            continue
+        val = line[q + len(key) + 2:]
+        if kind == "double":
+            out[key] = float(re.match(NUM, val).group(1))
+        else:
+            n = 3 if kind == "vec3" else 4
+            m = re.match(r"\[" + r",\s*".join([NUM] * n) + r"\]", val)  # sscanf "[%f, %f, %f]"
+            assert m, f"sscanf would fail on {section}/{key}: {val[:40]!r}"
+            out[key] = tuple(float(g) for g in m.groups())
+    assert "attitude" in out or "quaternion" in out
+    return out
+
+
+def test_packet_layout_matches_sim_json_struct():
+    data = sitl_frame(400, 7, [1500] * 16)
+    assert len(data) == 2 + 2 + 4 + 16 * 2
+    assert len(sitl_frame(400, 7, [1500] * 32, MAGIC_32)) == 2 + 2 + 4 + 32 * 2
+    pkt = parse_servo_packet(data)
+    assert (pkt.magic, pkt.frame_rate_hz, pkt.frame_count, pkt.pwm_us[0]) == (18458, 400, 7, 1500)
+    assert pack_servo_packet(400, 7, [1500] * 16) == data
+
+
+@pytest.mark.parametrize("data,msg", [
+    (b"\x1aH", "shorter than its 8-byte header"),
+    (struct.pack("<HHI16H", 1234, 400, 0, *[0] * 16), "expected 18458"),
+    (struct.pack("<HHI15H", MAGIC_16, 400, 0, *[0] * 15), "expected 40"),
+])
+def test_bad_packets_are_named(data, msg):
+    with pytest.raises(PacketError, match=msg):
+        parse_servo_packet(data)
+    b = JsonSitlBackend(V)
+    assert b.handle(data) is None and b.bad_packets == 1
+
+
+def test_pwm_channels_follow_the_vehicle_pwm_table():
+    pwm = [0] * 16
+    pwm[0] = 1900  # channel 1: jet of unit 1 full
+    pwm[4] = 1100  # channel 5: azimuth of unit 1 at -angle_limit
+    pwm[8] = 1700  # channel 9: elevation of unit 1 at +0.5 angle_limit
+    c = command_from_pwm(V, pwm)
+    lim = V.servo.angle_limit
+    assert c[0] == pytest.approx(V.thruster.n_max)
+    assert c[1:4] == pytest.approx([0, 0, 0])  # 0 us: jets off
+    assert c[4] == pytest.approx(-lim)
+    assert c[5:8] == pytest.approx([0, 0, 0])  # 0 us: joints centred
+    assert c[8] == pytest.approx(0.5 * lim)
+
+
+def test_first_reply_is_the_hand_computed_buoyant_vehicle():
+    """Jets off, level at 0.5 m: accel_body z = -(B - W) / (m + X_wdot * wall) - g after one frame."""
+    b = JsonSitlBackend(V, depth_m=0.5)
+    pwm = [1100] * 4 + [1500] * 8 + [0] * 4
+    r = sitl_parse(b.handle(sitl_frame(400, 1, pwm)))
+    e, body, hydro = V.environment, V.body, V.hydro
+    net_up = e.rho * e.g * body.volume - body.mass * e.g  # 1.4715 N
+    wall = 1 + V.effects.wall_proximity.k_wall * (body.radius / (e.floor_depth - 0.5)) ** 3
+    az = -net_up / (body.mass + hydro.added_mass[2] * wall)
+    assert r["timestamp"] == pytest.approx(1 / 400)
+    assert r["accel_body"][2] == pytest.approx(az - e.g, abs=2e-3)
+    assert r["accel_body"][0] == pytest.approx(0, abs=1e-9)
+    assert r["gyro"] == pytest.approx((0, 0, 0), abs=1e-9)
+    assert r["position"][2] == pytest.approx(0.5 + 0.5 * az * (1 / 400) ** 2, abs=1e-6)
+    assert r["velocity"][2] == pytest.approx(az / 400, rel=0.02)
+    assert r["quaternion"] == pytest.approx((1, 0, 0, 0))
+
+
+def test_lock_step_by_frame_count():
+    b = JsonSitlBackend(V, depth_m=0.5)
+    pwm = [1500] * 12
+    times = [sitl_parse(b.handle(sitl_frame(400, k, pwm)))["timestamp"] for k in range(10, 110)]
+    assert times == pytest.approx([k / 400 for k in range(1, 101)], abs=1e-12)
+    # the same frame again (SITL re-sends after a silence): same reply, no step
+    again = b.handle(sitl_frame(400, 109, pwm))
+    assert again == b.last_reply and b.duplicates == 1
+    assert sitl_parse(again)["timestamp"] == pytest.approx(100 / 400)
+    # a gap: counted as lost, still one step
+    r = sitl_parse(b.handle(sitl_frame(400, 113, pwm)))
+    assert b.lost_frames == 3 and r["timestamp"] == pytest.approx(101 / 400)
+    # frame count back to 0: SITL restarted; the vehicle starts over
+    first = sitl_parse(b.handle(sitl_frame(400, 0, pwm)))
+    assert b.resets == 1 and first["timestamp"] == pytest.approx(1 / 400)
+    fresh = sitl_parse(JsonSitlBackend(V, depth_m=0.5).handle(sitl_frame(400, 0, pwm)))
+    assert first == fresh
+
+
+def test_both_magics_fly_the_same_vehicle():
+    pwm = [1700, 1300, 1800, 1200, 1500, 1600, 1400, 1500, 1300, 1500, 1500, 1700]
+    a, b = JsonSitlBackend(V, depth_m=0.5), JsonSitlBackend(V, depth_m=0.5)
+    for k in range(200):
+        ra = a.handle(sitl_frame(1000, k, pwm, MAGIC_16))
+        rb = b.handle(sitl_frame(1000, k, pwm + [1234] * 20, MAGIC_32))
+    assert ra == rb  # channels 17..32 are not in asr4's [pwm] table
+    r = sitl_parse(ra)
+    assert r["timestamp"] == pytest.approx(0.2)
+    assert np.linalg.norm(r["velocity"]) > 1e-3  # the asymmetric jets moved it
+
+
+def test_over_udp_replies_to_the_sender():
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    backend = JsonSitlBackend(V, depth_m=0.5)
+    server = threading.Thread(target=backend.serve, kwargs=dict(sock=sock, max_frames=50, idle_timeout_s=5.0))
+    server.start()
+    client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    client.bind(("127.0.0.1", 0))
+    client.settimeout(5.0)
+    stamps = []
+    try:
+        client.sendto(b"not a frame", ("127.0.0.1", port))  # ignored, counted
+        for k in range(50):
+            client.sendto(sitl_frame(400, k, [1500] * 16), ("127.0.0.1", port))
+            reply, addr = client.recvfrom(65000)
+            assert addr == ("127.0.0.1", port)
+            stamps.append(sitl_parse(reply)["timestamp"])
+    finally:
+        server.join(10)
+        client.close()
+        sock.close()
+    assert stamps == pytest.approx([k / 400 for k in range(1, 51)])
+    assert backend.bad_packets == 1
