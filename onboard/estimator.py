@@ -1,0 +1,587 @@
+"""Model-aided state estimation: a filterpy EKF over attitude, rates, gyro bias, body velocity, depth.
+
+There is no DVL, so body velocity is observable only through the vehicle model: the process
+model is `onboard.model` itself (spec/vehicle-model.md sections 2-4), driven by the commanded
+jets, and the accelerometer is fused as the specific force that model predicts
+(f = v' + w x v - R^T [0, 0, g], spec 5): the accelerometer then tells about attitude (through
+gravity) AND about velocity (through the damping and thrust-inflow terms of v').
+
+Filter state (13, additive, `X_*` offsets below):
+    [roll, pitch, yaw (rad, ZYX), p, q, r (rad/s), b_gx, b_gy, b_gz (rad/s), u, v, w (m/s), depth (m)]
+Euler angles rather than a quaternion keep the filter additive, as filterpy's EKF assumes; the
+one wrap (yaw) is handled by the innovation residual and by re-wrapping after each step, and the
+ZYX singularity at pitch +-90 deg is out of reach of this bottom-heavy vehicle (cb 2 cm above
+cg). The quaternion is reported next to the Euler angles.
+
+The actuator states (propeller speeds, joint angles) and the seed-004 transient filters are not
+estimated: they are propagated deterministically from the commands, with the same model, in a
+full-size "nominal" state whose rigid-body part is overwritten by the filter mean before each
+use. Depth rate is the kinematic z' = R[2, :] v of the estimate.
+
+Why an EKF and not a UKF: a UKF on 13 states needs 27 sigma points, each one full model
+evaluation per predict and per update, and its numpy bookkeeping alone costs more than a
+millisecond. The EKF linearises by forward differences inside one numba-compiled call
+(14 model evaluations, ~40 us), so predict is ~80 us and each update ~60 us on this machine
+(`bench` figures in the README), well inside the ~300 us the onboard step can give it. The
+mean itself is propagated with the full nonlinear model by RK4 (the transient filters have
+lightly damped 57 rad/s poles that explicit Euler would excite), and only the covariance uses
+F = I + A dt + (A dt)^2 / 2.
+
+Robustness: NaN/inf inputs are rejected before touching the filter and counted; every update is
+gated by its Mahalanobis distance d^2 = y^T S^-1 y against a chi-square bound and counted when
+rejected. Divergence (non-finite state, a covariance past its bound, a run of consecutive gated
+rejections, or a windowed normalised innovation far above its expectation) sets a latched
+`diverged` flag with its reason; `reset()` is the explicit recovery.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+from numba import njit
+from scipy.stats import chi2
+
+from . import model
+from .model import P_SURF, derivative, quat_to_euler, rk4_step, specific_force
+from .sensors import AttitudeSample, ImuSample
+from .vehicle import Vehicle
+
+# Filter state offsets
+X_EULER, X_RATES, X_BIAS, X_VEL, X_DEPTH = 0, 3, 6, 9, 12
+N_X = 13
+STREAMS = ("gyro", "accel", "depth", "attitude")
+_GYRO, _ACCEL, _DEPTH, _ATT = range(4)
+
+
+# ------------------------------------------------------------------------------------------------
+# Domain types
+
+@dataclass(frozen=True)
+class EstimatorHealth:
+    """What the estimator did with its inputs, per stream in `STREAMS` order (for telemetry)."""
+
+    accepted: tuple = (0, 0, 0, 0)
+    rejected_nonfinite: tuple = (0, 0, 0, 0)  # NaN/inf inputs dropped before the filter
+    rejected_gated: tuple = (0, 0, 0, 0)  # innovation outside the chi-square gate
+    nis_average: tuple = (0.0, 0.0, 0.0, 0.0)  # windowed NIS / dim (expected ~1)
+    diverged: bool = False
+    diverged_reason: str = ""
+
+    @property
+    def rejected_total(self) -> int:
+        return int(sum(self.rejected_nonfinite) + sum(self.rejected_gated))
+
+    def as_dict(self) -> dict:
+        """Flat name -> number, names <= 10 chars (NAMED_VALUE_FLOAT), e.g. `rejg_accel`."""
+        out = {}
+        for i, s in enumerate(STREAMS):
+            out[f"rejn_{s[:5]}"] = float(self.rejected_nonfinite[i])
+            out[f"rejg_{s[:5]}"] = float(self.rejected_gated[i])
+        out["est_div"] = 1.0 if self.diverged else 0.0
+        return out
+
+
+@dataclass(frozen=True)
+class EstimatedState:
+    """The estimator's output at `time_s`; body FRD, NED, ZYX Euler; covariance diagonal of X."""
+
+    time_s: float
+    quat_wxyz: tuple
+    euler_rad: tuple  # roll, pitch, yaw (yaw in [-pi, pi))
+    rates_rad_s: tuple  # p, q, r (gyro bias removed)
+    gyro_bias_rad_s: tuple
+    velocity_body_m_s: tuple  # u, v, w
+    depth_m: float  # below the free surface (NED z - surface_depth)
+    depth_rate_m_s: float  # NED z' = R[2, :] v
+    covariance_diag: tuple  # 13 variances in the X_* layout
+    health: EstimatorHealth = field(default_factory=EstimatorHealth)
+
+    @property
+    def nu(self) -> np.ndarray:
+        """[u, v, w, p, q, r] as an array."""
+        return np.array(self.velocity_body_m_s + self.rates_rad_s)
+
+
+@dataclass(frozen=True)
+class EstimatorTuning:
+    """Noise densities and thresholds; the defaults suit the reference vehicle.
+
+    Process noise is white in continuous time; Q = diag(q^2) dt (Van Loan, first order).
+    """
+
+    q_attitude_rad_sqrt_s: float = 2e-3  # kinematics are exact; room for linearisation error
+    q_rates_rad_s2_sqrt_hz: float = 0.3  # unmodelled moment / inertia
+    q_bias_rad_s_sqrt_s: float = 2e-4  # gyro bias random walk
+    q_velocity_m_s2_sqrt_hz: float = 0.05  # unmodelled force / mass
+    q_depth_m_sqrt_s: float = 2e-3
+    accel_model_sigma_m_s2: float = 0.08  # model error in predicted specific force, added to R
+    init_attitude_sigma_rad: float = 0.4
+    init_yaw_sigma_rad: float = 3.2  # heading unknown until an ATTITUDE arrives
+    init_rates_sigma_rad_s: float = 0.1
+    init_bias_sigma_rad_s: float = 0.05
+    init_velocity_sigma_m_s: float = 0.2
+    init_depth_sigma_m: float = 1.0
+    gate_probability: float = 0.9999  # chi-square gate P(accept | consistent filter)
+    max_consecutive_rejections: int = 50  # gated rejections in a row of one stream -> diverged
+    nis_window: int = 100  # samples in the NIS moving average
+    nis_limit: float = 8.0  # windowed NIS / dim above this -> diverged (expected 1)
+    max_sigma_attitude_rad: float = 0.8  # roll/pitch std above this -> diverged
+    max_sigma_velocity_m_s: float = 2.0
+    max_sigma_depth_m: float = 3.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Compiled core: the model seen through the 13 filter states
+
+@njit(cache=True)
+def _embed(xr, full, surface):
+    """Full model state with the rigid-body part taken from the filter state xr (in place)."""
+    phi, theta, psi = xr[0], xr[1], xr[2]
+    cr, sr = math.cos(phi / 2), math.sin(phi / 2)
+    cp, sp = math.cos(theta / 2), math.sin(theta / 2)
+    cy, sy = math.cos(psi / 2), math.sin(psi / 2)
+    full[0] = 0.0
+    full[1] = 0.0
+    full[2] = surface + xr[12]
+    # q = q_z(psi) q_y(theta) q_x(phi) (Fossen 2011 eq. 2.83)
+    full[3] = cr * cp * cy + sr * sp * sy
+    full[4] = sr * cp * cy - cr * sp * sy
+    full[5] = cr * sp * cy + sr * cp * sy
+    full[6] = cr * cp * sy - sr * sp * cy
+    for i in range(3):
+        full[7 + i] = xr[9 + i]  # u, v, w
+        full[10 + i] = xr[3 + i]  # p, q, r
+
+
+@njit(cache=True)
+def _reduced_rates(xr, full, u, p, xdot, out, fspec):
+    """x_r' of the filter state and the specific force at xr; `full` is overwritten by the embedding.
+
+    Euler rates: [phi', theta', psi'] = T(phi, theta) w (Fossen 2011 eq. 2.29);
+    w' and v' from the vehicle model; bias' = 0; depth' = z' = R[2, :] v.
+    """
+    _embed(xr, full, p[P_SURF])
+    derivative(full, u, p, xdot)
+    phi, theta = xr[0], xr[1]
+    sphi, cphi = math.sin(phi), math.cos(phi)
+    cth = math.cos(theta)
+    cth = cth if abs(cth) > 1e-6 else 1e-6
+    tth = math.sin(theta) / cth
+    pr, qr, rr = xr[3], xr[4], xr[5]
+    out[0] = pr + sphi * tth * qr + cphi * tth * rr  # phi' = p + s(phi) t(theta) q + c(phi) t(theta) r
+    out[1] = cphi * qr - sphi * rr  # theta' = c(phi) q - s(phi) r
+    out[2] = (sphi * qr + cphi * rr) / cth  # psi' = (s(phi) q + c(phi) r) / c(theta)
+    for i in range(3):
+        out[3 + i] = xdot[10 + i]  # w' (model)
+        out[6 + i] = 0.0  # b_g' = 0 (random walk in Q)
+        out[9 + i] = xdot[7 + i]  # v' (model)
+    out[12] = xdot[2]  # z' = R[2, :] v
+    f = specific_force(full, xdot, p)  # f = v' + w x v - R^T [0, 0, g] (spec 5)
+    for i in range(3):
+        fspec[i] = f[i]
+
+
+@njit(cache=True)
+def _linearise(xr, full, u, p):
+    """Forward-difference A = df/dx_r (13x13) and H_acc = d f_spec / d x_r (3x13) at xr.
+
+    Returns (A, H_acc, f_spec(xr)); `full` keeps the actuator/transient part, its rigid-body
+    part is restored from xr on return.
+    """
+    n = xr.shape[0]
+    xdot = np.zeros(full.shape[0])
+    f0 = np.empty(n)
+    s0 = np.empty(3)
+    _reduced_rates(xr, full, u, p, xdot, f0, s0)
+    A = np.empty((n, n))
+    H = np.empty((3, n))
+    f1 = np.empty(n)
+    s1 = np.empty(3)
+    xp = xr.copy()
+    for j in range(n):
+        if 6 <= j < 9:  # the gyro bias enters neither the model nor the accelerometer
+            for i in range(n):
+                A[i, j] = 0.0
+            for i in range(3):
+                H[i, j] = 0.0
+            continue
+        h = 1e-6 * max(1.0, abs(xr[j]))
+        xp[j] = xr[j] + h
+        _reduced_rates(xp, full, u, p, xdot, f1, s1)
+        for i in range(n):
+            A[i, j] = (f1[i] - f0[i]) / h
+        for i in range(3):
+            H[i, j] = (s1[i] - s0[i]) / h
+        xp[j] = xr[j]
+    _embed(xr, full, p[P_SURF])
+    return A, H, s0
+
+
+@njit(cache=True)
+def _propagate(xr, full, u, p, dt):
+    """Mean by RK4 of the full model; F = I + A dt + (A dt)^2 / 2 at the prior mean.
+
+    Also returns H_acc, the accelerometer Jacobian at the prior mean, for the next IMU update.
+    """
+    A, H_acc, _ = _linearise(xr, full, u, p)
+    nxt = rk4_step(full, u, p, dt)
+    xn = xr.copy()
+    roll, pitch, yaw = quat_to_euler(nxt[3:7])
+    xn[0], xn[1], xn[2] = roll, pitch, yaw
+    for i in range(3):
+        xn[3 + i] = nxt[10 + i]
+        xn[9 + i] = nxt[7 + i]
+    xn[12] = nxt[2] - p[P_SURF]
+    Ad = A * dt
+    F = np.eye(xr.shape[0]) + Ad + 0.5 * (Ad @ Ad)
+    return xn, nxt, F, H_acc
+
+
+def _wrap(a: float) -> float:
+    """Angle in [-pi, pi)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _attitude_residual(z, hx):
+    """z - h(x) with the yaw difference wrapped to [-pi, pi) (used as filterpy's `residual`)."""
+    y = np.subtract(z, hx)
+    y[2] = _wrap(y[2])
+    return y
+
+
+@njit(cache=True)
+def _mahalanobis2(P, H, R, y):
+    """d^2 = y^T S^-1 y with S = H P H^T + R (innovation covariance); inf if S is singular."""
+    S = H @ P @ H.T + R
+    if not np.all(np.isfinite(S)):
+        return np.inf
+    L = np.linalg.cholesky(S)  # S = L L^T; d^2 = |L^-1 y|^2
+    m = y.shape[0]
+    w = np.empty(m)
+    for i in range(m):
+        s = y[i]
+        for j in range(i):
+            s -= L[i, j] * w[j]
+        w[i] = s / L[i, i]
+    return float(np.sum(w * w))
+
+
+@njit(cache=True)
+def _specific_force_at(xr, full, u, p):
+    """h_acc(x) = f_spec = v' + w x v - R^T [0, 0, g] of the model at the filter mean (spec 5)."""
+    xdot = np.zeros(full.shape[0])
+    _embed(xr, full, p[P_SURF])
+    derivative(full, u, p, xdot)
+    return specific_force(full, xdot, p)
+
+
+def _block_diag(blocks) -> np.ndarray:
+    n = sum(b.shape[0] for b in blocks)
+    out = np.zeros((n, n))
+    i = 0
+    for b in blocks:
+        m = b.shape[0]
+        out[i:i + m, i:i + m] = b
+        i += m
+    return out
+
+
+class _ModelAidedEKF(ExtendedKalmanFilter):
+    """filterpy's EKF with the nonlinear mean propagation of the vehicle model.
+
+    `predict_x` is filterpy's documented override point for a nonlinear f(x, u); here u is the
+    (mean, F) pair computed by `_propagate`, so predict() does x = f(x, u), P = F P F^T + Q.
+    """
+
+    def predict_x(self, u=0):
+        self.x, self.F = u
+
+
+# ------------------------------------------------------------------------------------------------
+
+class Estimator:
+    """Model-aided EKF, ready to use from a vehicle: `predict`, `update_*`, read `estimate`."""
+
+    def __init__(
+        self,
+        vehicle: Vehicle,
+        depth_m: float = 0.0,
+        euler_rad=(0.0, 0.0, 0.0),
+        gyro_bias_rad_s=(0.0, 0.0, 0.0),
+        tuning: EstimatorTuning | None = None,
+    ):
+        self.vehicle = vehicle
+        self.tuning = tuning or EstimatorTuning()
+        self.params = model.pack_params(vehicle)
+        self.layout = model.StateLayout(vehicle.n_units)
+        s, e = vehicle.sensors, vehicle.environment
+        t = self.tuning
+        # Measurement noise (spec 5), floored so S stays invertible when a file says 0
+        self._R_gyro = np.eye(3) * max(s.gyro_noise, 1e-4) ** 2
+        self._R_accel = np.eye(3) * (max(s.accel_noise, 1e-3) ** 2 + t.accel_model_sigma_m_s2 ** 2)
+        self._R_depth = np.eye(1) * max(s.pressure_noise / (e.rho * e.g), 1e-3) ** 2
+        self._R_att = np.eye(3) * max(s.attitude_noise, 1e-4) ** 2
+        # Continuous process noise densities, X_* order
+        self._q = np.array(
+            [t.q_attitude_rad_sqrt_s] * 3 + [t.q_rates_rad_s2_sqrt_hz] * 3
+            + [t.q_bias_rad_s_sqrt_s] * 3 + [t.q_velocity_m_s2_sqrt_hz] * 3 + [t.q_depth_m_sqrt_s]
+        ) ** 2
+        self._gate = {m: float(chi2.ppf(t.gate_probability, m)) for m in (1, 3)}
+        self._H_gyro = np.zeros((3, N_X))
+        self._H_gyro[:, X_RATES:X_RATES + 3] = np.eye(3)  # h = w + b_g
+        self._H_gyro[:, X_BIAS:X_BIAS + 3] = np.eye(3)
+        self._H_depth = np.zeros((1, N_X))
+        self._H_att = np.zeros((3, N_X))
+        self._H_att[:, X_EULER:X_EULER + 3] = np.eye(3)  # h = [roll, pitch, yaw]
+        self._init = (float(depth_m), tuple(map(float, euler_rad)), tuple(map(float, gyro_bias_rad_s)))
+        self.reset()
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def reset(self, depth_m: float | None = None, euler_rad=None, gyro_bias_rad_s=None) -> None:
+        """Back to the initial estimate and covariance; clears counters and the diverged latch."""
+        d0, e0, b0 = self._init
+        d0 = d0 if depth_m is None else float(depth_m)
+        e0 = e0 if euler_rad is None else tuple(map(float, euler_rad))
+        b0 = b0 if gyro_bias_rad_s is None else tuple(map(float, gyro_bias_rad_s))
+        t = self.tuning
+        ekf = _ModelAidedEKF(dim_x=N_X, dim_z=3)
+        x = np.zeros(N_X)
+        x[X_EULER:X_EULER + 3] = e0
+        x[X_BIAS:X_BIAS + 3] = b0
+        x[X_DEPTH] = d0
+        ekf.x = x
+        ekf.P = np.diag(np.array(
+            [t.init_attitude_sigma_rad] * 2 + [t.init_yaw_sigma_rad] + [t.init_rates_sigma_rad_s] * 3
+            + [t.init_bias_sigma_rad_s] * 3 + [t.init_velocity_sigma_m_s] * 3 + [t.init_depth_sigma_m]
+        ) ** 2)
+        self._ekf = ekf
+        self._full = model.initial_state(self.vehicle, d0)
+        _embed(x, self._full, self.params[P_SURF])
+        self._command = np.zeros(3 * self.vehicle.n_units)
+        self._H_acc = _linearise(x, self._full, self._command, self.params)[1]
+        self.time_s = 0.0
+        self._accepted = [0, 0, 0, 0]
+        self._rej_nonfinite = [0, 0, 0, 0]
+        self._rej_gated = [0, 0, 0, 0]
+        self._consecutive = [0, 0, 0, 0]
+        self._nis = [0.0, 0.0, 0.0, 0.0]
+        self._nis_n = [0, 0, 0, 0]
+        self._diverged = ""
+
+    # -- prediction --------------------------------------------------------------------------
+    def predict(self, dt: float, command) -> None:
+        """Advance by dt (s) with the command u = [n_cmd x k, alpha_cmd x k, beta_cmd x k] held.
+
+        x_k+1 = f(x_k, u_k) by RK4 of the vehicle model; P = F P F^T + Q, Q = diag(q^2) dt.
+        """
+        dt = float(dt)
+        if not (math.isfinite(dt) and 0.0 < dt <= 1.0):
+            raise ValueError(f"Estimator.predict: dt must be a finite time step in (0, 1] s, got {dt!r}")
+        u = np.asarray(command, dtype=float)
+        if u.shape != self._command.shape or not np.all(np.isfinite(u)):
+            raise ValueError(
+                f"Estimator.predict: command must be {self._command.shape[0]} finite values "
+                f"[n_cmd, alpha_cmd, beta_cmd per unit], got {command!r}"
+            )
+        if self._diverged and not np.all(np.isfinite(self._ekf.x)):
+            self.time_s += dt  # nothing sane to propagate; wait for reset()
+            return
+        self._command = u.copy()
+        ekf = self._ekf
+        xn, full, F, self._H_acc = _propagate(ekf.x, self._full, u, self.params, dt)
+        xn[X_EULER + 2] = _wrap(xn[X_EULER + 2])
+        self._full = full
+        ekf.Q = np.diag(self._q * dt)  # Q = diag(q^2) dt
+        ekf.predict(u=(xn, F))  # x = f(x, u); P = F P F^T + Q
+        # Heading without a heading sensor is a random walk: cap, do not call it divergence
+        cap = math.pi ** 2
+        if ekf.P[2, 2] > cap:
+            s = math.sqrt(cap / ekf.P[2, 2])
+            ekf.P[2, :] *= s
+            ekf.P[:, 2] *= s
+        self.time_s += dt
+        self._check_divergence()
+
+    # -- updates -----------------------------------------------------------------------------
+    def update_imu(self, sample: ImuSample) -> None:
+        """Fuse one IMU sample: gyro z = w + b_g, accelerometer z = f_spec(x, u) (spec 5).
+
+        Each half is checked and gated on its own, then the accepted halves go through one
+        filterpy update; the accelerometer Jacobian is the one linearised at the prior (predict).
+        """
+        g = np.asarray(sample.gyro_frd_rad_s, dtype=float)
+        a = np.asarray(sample.accel_frd_m_s2, dtype=float)
+        parts = []
+        if g.shape != (3,) or not np.all(np.isfinite(g)):
+            self._rej_nonfinite[_GYRO] += 1
+        else:
+            parts.append((_GYRO, g, self._H_gyro, self._H_gyro @ self._ekf.x, self._R_gyro))
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            self._rej_nonfinite[_ACCEL] += 1
+        else:
+            hx = _specific_force_at(self._ekf.x, self._full, self._command, self.params)
+            parts.append((_ACCEL, a, self._H_acc, hx, self._R_accel))
+        self._update(parts)
+
+    def update_depth(self, depth_m: float) -> None:
+        """Fuse a depth (m, from `sensors.depth_from_pressure`); z = max(depth, 0) as the sensor reads."""
+        try:
+            z = float(depth_m)
+        except (TypeError, ValueError):
+            z = math.nan
+        if not math.isfinite(z):
+            self._rej_nonfinite[_DEPTH] += 1
+            return
+        d = self._ekf.x[X_DEPTH]
+        if d <= 0.0 and z <= 0.0:
+            self._accepted[_DEPTH] += 1  # consistent, and the saturated sensor says nothing more
+            return
+        H = np.zeros((1, N_X))
+        H[0, X_DEPTH] = 1.0 if d > 0.0 else 0.0  # pressure saturates above the surface
+        self._update([(_DEPTH, np.array([z]), H, np.array([max(d, 0.0)]), self._R_depth)])
+
+    def update_attitude(self, sample: AttitudeSample) -> None:
+        """Fuse an ATTITUDE (roll, pitch, yaw); yaw innovation wrapped to [-pi, pi)."""
+        try:
+            z = np.array([sample.roll_rad, sample.pitch_rad, sample.yaw_rad], dtype=float)
+        except (TypeError, ValueError):
+            z = np.full(3, np.nan)
+        if not np.all(np.isfinite(z)):
+            self._rej_nonfinite[_ATT] += 1
+            return
+        hx = self._ekf.x[X_EULER:X_EULER + 3].copy()
+        self._update([(_ATT, z, self._H_att, hx, self._R_att)])
+
+    def _update(self, parts) -> None:
+        """Gate each part by d^2 = y^T S^-1 y (S = H P H^T + R), then one filterpy EKF update."""
+        ekf = self._ekf
+        keep = []
+        for k, z, H, hx, R in parts:
+            y = z - hx  # innovation y = z - h(x)
+            if k == _ATT:
+                y[2] = _wrap(y[2])
+            d2 = _mahalanobis2(ekf.P, H, R, y)
+            m = len(z)
+            if not math.isfinite(d2) or d2 > self._gate[m]:
+                self._rej_gated[k] += 1
+                self._consecutive[k] += 1
+                self._nis_push(k, min(d2, 1e6) / m if math.isfinite(d2) else 1e6)
+            else:
+                keep.append((k, z, H, hx, R, y))
+                self._accepted[k] += 1
+                self._consecutive[k] = 0
+                self._nis_push(k, d2 / m)
+        if keep:
+            if len(keep) == 1:
+                _, z, H, hx, R, y = keep[0]
+            else:
+                z = np.concatenate([p[1] for p in keep])
+                H = np.vstack([p[2] for p in keep])
+                hx = np.concatenate([p[3] for p in keep])
+                R = _block_diag([p[4] for p in keep])
+            att = any(p[0] == _ATT for p in keep)
+            ekf.update(
+                z, lambda _x: H, lambda _x: hx, R=R,
+                residual=_attitude_residual if att else np.subtract,
+            )  # K = P H^T S^-1; x += K y; P = (I - K H) P (I - K H)^T + K R K^T (Joseph)
+            ekf.x[X_EULER + 2] = _wrap(ekf.x[X_EULER + 2])
+            _embed(ekf.x, self._full, self.params[P_SURF])
+        self._check_divergence()
+
+    def _nis_push(self, k: int, value: float) -> None:
+        """Windowed mean of NIS/dim: exponential average with the window's time constant."""
+        n = min(self._nis_n[k] + 1, self.tuning.nis_window)
+        self._nis_n[k] = n
+        self._nis[k] += (value - self._nis[k]) / n
+
+    def _check_divergence(self) -> None:
+        if self._diverged:
+            return
+        t = self.tuning
+        x, P = self._ekf.x, self._ekf.P
+        d = np.diag(P)
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            self._diverged = "non-finite state or covariance"
+        elif max(d[0], d[1]) > t.max_sigma_attitude_rad ** 2:
+            self._diverged = f"roll/pitch sigma {math.sqrt(max(d[0], d[1])):.2f} rad > {t.max_sigma_attitude_rad}"
+        elif max(d[9:12]) > t.max_sigma_velocity_m_s ** 2:
+            self._diverged = f"velocity sigma {math.sqrt(max(d[9:12])):.2f} m/s > {t.max_sigma_velocity_m_s}"
+        elif d[12] > t.max_sigma_depth_m ** 2:
+            self._diverged = f"depth sigma {math.sqrt(d[12]):.2f} m > {t.max_sigma_depth_m}"
+        else:
+            for k, s in enumerate(STREAMS):
+                if self._consecutive[k] >= t.max_consecutive_rejections:
+                    self._diverged = f"{s}: {self._consecutive[k]} consecutive gated rejections"
+                    break
+                if self._nis_n[k] >= t.nis_window // 2 and self._nis[k] > t.nis_limit:
+                    self._diverged = f"{s}: windowed NIS/dim {self._nis[k]:.1f} > {t.nis_limit}"
+                    break
+
+    # -- output ------------------------------------------------------------------------------
+    @property
+    def diverged(self) -> bool:
+        return bool(self._diverged)
+
+    @property
+    def health(self) -> EstimatorHealth:
+        return EstimatorHealth(
+            accepted=tuple(self._accepted),
+            rejected_nonfinite=tuple(self._rej_nonfinite),
+            rejected_gated=tuple(self._rej_gated),
+            nis_average=tuple(float(v) for v in self._nis),
+            diverged=bool(self._diverged),
+            diverged_reason=self._diverged,
+        )
+
+    @property
+    def estimate(self) -> EstimatedState:
+        x = self._ekf.x
+        return _make_state(self.time_s, x, np.diag(self._ekf.P), self.health)
+
+
+def _make_state(time_s: float, x, cov_diag, health: EstimatorHealth) -> EstimatedState:
+    phi, theta = x[0], x[1]
+    q = model.euler_to_quat(float(phi), float(theta), float(x[2]))
+    u, v, w = x[9], x[10], x[11]
+    # z' = R[2, :] v = -s(theta) u + c(theta) s(phi) v + c(theta) c(phi) w (Fossen 2011 eq. 2.18)
+    zdot = -math.sin(theta) * u + math.cos(theta) * math.sin(phi) * v + math.cos(theta) * math.cos(phi) * w
+    return EstimatedState(
+        time_s=float(time_s),
+        quat_wxyz=tuple(float(c) for c in q),
+        euler_rad=(float(x[0]), float(x[1]), float(_wrap(x[2]))),
+        rates_rad_s=tuple(float(c) for c in x[3:6]),
+        gyro_bias_rad_s=tuple(float(c) for c in x[6:9]),
+        velocity_body_m_s=tuple(float(c) for c in x[9:12]),
+        depth_m=float(x[12]),
+        depth_rate_m_s=float(zdot),
+        covariance_diag=tuple(float(c) for c in cov_diag),
+        health=health,
+    )
+
+
+def state_from_truth(x_full, vehicle: Vehicle, time_s: float = 0.0) -> EstimatedState:
+    """An `EstimatedState` holding a full model state exactly (zero covariance, zero bias).
+
+    For closed-loop tests and the HIL's "perfect estimate" mode: the controller sees the truth.
+    """
+    x_full = np.asarray(x_full, float)
+    roll, pitch, yaw = quat_to_euler(x_full[3:7])
+    xr = np.zeros(N_X)
+    xr[0:3] = roll, pitch, yaw
+    xr[3:6] = x_full[10:13]
+    xr[9:12] = x_full[7:10]
+    xr[12] = x_full[2] - vehicle.environment.surface_depth
+    return _make_state(time_s, xr, np.zeros(N_X), EstimatorHealth())
+
+
+__all__ = [
+    "Estimator",
+    "EstimatedState",
+    "EstimatorHealth",
+    "EstimatorTuning",
+    "STREAMS",
+    "state_from_truth",
+]
