@@ -1,0 +1,636 @@
+"""Thrust allocation over vectored water-jets: a warm-started OSQP QP and the fixed-mixing baseline.
+
+Pure math, no IO and no clock of its own (the solve time is measured, not scheduled). Split as
+in PX4's control_allocator: what the jets can do (`JetGeometry`: the fixed 6 x 3k wrench map B
+of spec 3, the per-unit frames d, e_alpha, e_beta, the seed-000 thrust model and its inverse)
+is separate from how it is inverted (`QpAllocator`, `PseudoInverseAllocator`). Both return the
+same frozen `Allocation`, which carries its own diagnostics like a qpsolvers `Solution`.
+
+The QP (decision variable: the force vector f_i of each unit, body FRD, newtons):
+
+    min_f  (B f - tau)' W (B f - tau) + w_e |f|^2 + w_c |f - f_prev|^2
+    s.t.   0 <= d_i' f_i <= T_cap,i                              thrust, no backwards push
+           k_lo,a t_i <= e_alpha,i' f_i <= k_hi,a t_i            azimuth travel this step
+           k_lo,b t_i <= e_beta,i'  f_i <= k_hi,b t_i            elevation travel this step
+
+with t_i = d_i' f_i. The direction set of a unit is nonconvex, so the constraints are a
+polyhedral inner approximation linearised at the current joint angles: a force tilted from d_i
+by the joint changes (da, db) has e_alpha / d and e_beta / d components cos(b) tan(da) and
+tan(db), and da, db are bounded by rate_limit * dt and by the angle limits. The magnitude cap
+T_cap = T_max / sqrt(1 + k_a^2 + k_b^2) keeps |f_i| <= T_max(J_i), with T_max the seed-000
+thrust (eq. 15) at n_max and the unit's estimated axial inflow. After the solve every unit's
+force is turned back into (n, alpha, beta) exactly (inverse of d(alpha, beta) and of eq. 15),
+the angles and n are clipped to their limits, and the achieved wrench is recomputed from the
+clipped command with the forward model, so what is reported is what the jets will do.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+from numba import njit
+
+from . import model, pwm
+from .vehicle import Vehicle
+
+AXES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
+_SOLVED = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
+
+
+# ------------------------------------------------------------------------------------------------
+# Configuration
+
+
+@dataclass(frozen=True)
+class AllocationConfig:
+    """Weights and solver budget of the allocation (defaults suit the reference vehicle).
+
+    `axis_weights` are relative importances [surge, sway, heave, roll, pitch, yaw]; the wrench
+    error is normalised by `force_scale_n` (forces) and `force_scale_n * moment_arm_m` (moments)
+    so the weights compare like with like. Roll, pitch and heave weigh more than surge, sway and
+    yaw: a submarine that keeps level and depth while it loses some speed is still safe.
+    """
+
+    axis_weights: tuple = (1.0, 1.0, 10.0, 10.0, 10.0, 1.0)
+    force_scale_n: float = 4.0  # about one jet's bollard thrust
+    moment_arm_m: float = 0.1  # about the jets' distance from the body origin
+    effort_weight: float = 1e-3  # on |f|^2 / force_scale^2
+    change_weight: float = 1e-2  # on |f - f_prev|^2 / force_scale^2
+    time_budget_s: float = 1e-3  # over this the previous command is kept (fallback)
+    max_iter: int = 400
+    eps_abs: float = 1e-5
+    eps_rel: float = 1e-5
+
+    def __post_init__(self):
+        w = tuple(float(x) for x in self.axis_weights)
+        if len(w) != 6 or not all(math.isfinite(x) and x >= 0 for x in w) or max(w) <= 0:
+            raise ValueError(f"AllocationConfig.axis_weights: expected 6 finite weights >= 0 "
+                             f"[{', '.join(AXES)}], not all zero; got {self.axis_weights!r}")
+        object.__setattr__(self, "axis_weights", w)
+        for name in ("force_scale_n", "moment_arm_m", "time_budget_s", "eps_abs", "eps_rel"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"AllocationConfig.{name}: expected a finite number > 0, got {v!r}")
+        for name in ("effort_weight", "change_weight"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"AllocationConfig.{name}: expected a finite number >= 0, got {v!r}")
+        if not (isinstance(self.max_iter, int) and self.max_iter >= 1):
+            raise ValueError(f"AllocationConfig.max_iter: expected an integer >= 1, got {self.max_iter!r}")
+
+    @classmethod
+    def from_vehicle(cls, v: Vehicle, **overrides) -> "AllocationConfig":
+        """Scales from the vehicle: one jet's bollard thrust and the mean jet lever arm."""
+        geo = JetGeometry(v)
+        scale = float(geo.thrust_max(np.zeros(v.n_units)).mean())
+        arm = float(np.mean(np.linalg.norm(geo.position, axis=1)))
+        kw = {"force_scale_n": scale if scale > 0 else 1.0, "moment_arm_m": arm if arm > 0 else 0.1}
+        kw.update(overrides)
+        return cls(**kw)
+
+    def weight_matrix(self) -> np.ndarray:
+        """W = diag(importance / scale^2), scale = F_s for forces and F_s L for moments."""
+        F, L = self.force_scale_n, self.moment_arm_m
+        s = np.array([F, F, F, F * L, F * L, F * L])
+        return np.diag(np.asarray(self.axis_weights) / s**2)
+
+
+# ------------------------------------------------------------------------------------------------
+# Effectiveness: what the jets can do (spec 3, seed 000, seed 003 sec. 3.1). Compiled kernels
+# (numba, like onboard.model) so a control step spends its time in the solver, not in numpy
+# call overhead; `JetGeometry` is their readable front.
+#
+# Thrust parameters tp = [rho, D, kt0, kt1, kt2, j_lo, j_hi, n_max, inflow (1/0)].
+
+
+@njit(cache=True)
+def _K(J, tp):
+    """K(J) = kt0 + kt1 J + kt2 J^2 (seed 000 eq. 14-15)."""
+    return tp[2] + tp[3] * J + tp[4] * J * J
+
+
+@njit(cache=True)
+def jet_frames(alpha, beta, e1):
+    """F[i] = [d_i, e_alpha,i, e_beta,i] (k x 3 x 3) at joint angles alpha, beta (spec 3, 4.1).
+
+    e1 = neutral, e2 = e3 x e1 = (-e1y, e1x, 0), e3 = body z;
+    d = cos b cos a e1 + cos b sin a e2 - sin b e3; e_alpha = -sin a e1 + cos a e2;
+    e_beta = -sin b cos a e1 - sin b sin a e2 - cos b e3.
+    """
+    k = alpha.shape[0]
+    F = np.empty((k, 3, 3))
+    for i in range(k):
+        F[i] = model.jet_frame(alpha[i], beta[i], e1[i, 0], e1[i, 1])
+    return F
+
+
+@njit(cache=True)
+def frame_angles(f, e1, alpha_default, beta_default):
+    """(alpha, beta) of the direction of each row of f: the inverse of d(alpha, beta).
+
+    With u = f / |f|: beta = -asin(u . e3), alpha = atan2(u . e2, u . e1); a zero force keeps the
+    default angles.
+    """
+    k = f.shape[0]
+    a = np.empty(k)
+    b = np.empty(k)
+    for i in range(k):
+        m = math.sqrt(f[i, 0] ** 2 + f[i, 1] ** 2 + f[i, 2] ** 2)
+        if m <= 1e-9:
+            a[i], b[i] = alpha_default[i], beta_default[i]
+            continue
+        c1 = (f[i, 0] * e1[i, 0] + f[i, 1] * e1[i, 1]) / m
+        c2 = (-f[i, 0] * e1[i, 1] + f[i, 1] * e1[i, 0]) / m
+        c3 = min(max(f[i, 2] / m, -1.0), 1.0)
+        a[i] = math.atan2(c2, c1)
+        b[i] = -math.asin(c3)
+    return a, b
+
+
+@njit(cache=True)
+def axial_inflow(nu_r, pos, F):
+    """V_a,i = (v_r + omega x r_i) . d_i (spec 3; seed 000 eq. 11: only the axial part counts)."""
+    k = pos.shape[0]
+    out = np.empty(k)
+    for i in range(k):
+        c0, c1, c2 = model.cross(nu_r[3], nu_r[4], nu_r[5], pos[i, 0], pos[i, 1], pos[i, 2])
+        out[i] = (nu_r[0] + c0) * F[i, 0, 0] + (nu_r[1] + c1) * F[i, 0, 1] + (nu_r[2] + c2) * F[i, 0, 2]
+    return out
+
+
+@njit(cache=True)
+def thrust_of_speed(n, v_axial, tp):
+    """T = rho D^4 n^2 K(J), J = clip(V_a / (n D), j_range), J = 0 at n = 0 (seed 000 eq. 15)."""
+    k = n.shape[0]
+    out = np.empty(k)
+    for i in range(k):
+        J = 0.0
+        if tp[8] > 0.5 and n[i] > 1e-9:
+            J = min(max(v_axial[i] / (n[i] * tp[1]), tp[5]), tp[6])
+        out[i] = tp[0] * tp[1] ** 4 * n[i] * n[i] * _K(J, tp)
+    return out
+
+
+@njit(cache=True)
+def _speed1(T, Va, tp):
+    """n >= 0 with T(n, V_a) = T: the inverse of eq. 15, closed form per regime of J.
+
+    J = V_a / (n D) is clipped to [j_lo, j_hi]: where it is clipped T = rho D^4 K(j) n^2; in
+    between T = rho D^2 (kt0 D^2 n^2 + kt1 D V_a n + kt2 V_a^2), a quadratic in n. The root whose
+    own J lies in its regime is the answer (T rises with n, so exactly one does).
+    """
+    if T <= 0.0:
+        return 0.0
+    rho, D = tp[0], tp[1]
+    c = rho * D ** 4
+    if tp[8] < 0.5:
+        return math.sqrt(T / (c * tp[2]))
+    j_lo, j_hi = tp[5], tp[6]
+    K_hi = _K(j_hi, tp)
+    if K_hi > 0.0:
+        n = math.sqrt(T / (c * K_hi))  # slow propeller in fast inflow: J clipped to j_hi
+        if Va / (n * D) >= j_hi:
+            return n
+    a = c * tp[2]
+    b = rho * D ** 3 * tp[3] * Va
+    cc = rho * D * D * tp[4] * Va * Va - T
+    disc = b * b - 4.0 * a * cc
+    if disc >= 0.0:
+        n = (-b + math.sqrt(disc)) / (2.0 * a)
+        if n > 0.0:
+            J = Va / (n * D)
+            if j_lo - 1e-12 <= J <= j_hi + 1e-12:
+                return n
+    K_lo = _K(j_lo, tp)  # J clipped to j_lo (e.g. inflow from behind)
+    return math.sqrt(T / (c * K_lo)) if K_lo > 0.0 else 0.0
+
+
+@njit(cache=True)
+def speed_of_thrust(T, v_axial, tp):
+    """Vector form of `_speed1`."""
+    out = np.empty(T.shape[0])
+    for i in range(T.shape[0]):
+        out[i] = _speed1(T[i], v_axial[i], tp)
+    return out
+
+
+@njit(cache=True)
+def evaluate(n, alpha, beta, nu_r, pos, e1, tp):
+    """(T, force vectors, wrench) of a command at inflow nu_r: tau = sum [T_i d_i, r_i x T_i d_i]."""
+    F = jet_frames(alpha, beta, e1)
+    T = thrust_of_speed(n, axial_inflow(nu_r, pos, F), tp)
+    k = n.shape[0]
+    force = np.empty((k, 3))
+    tau = np.zeros(6)
+    for i in range(k):
+        for j in range(3):
+            force[i, j] = T[i] * F[i, 0, j]
+            tau[j] += force[i, j]
+        m0, m1, m2 = model.cross(pos[i, 0], pos[i, 1], pos[i, 2], force[i, 0], force[i, 1], force[i, 2])
+        tau[3] += m0
+        tau[4] += m1
+        tau[5] += m2
+    return T, force, tau
+
+
+@njit(cache=True)
+def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, u, ax):
+    """Fill the QP data of one step (q, l, u, A values); return T_max and the joint windows.
+
+    Window: da in [max(-step, -lim - a0), min(step, lim - a0)], same for beta (rate * dt and the
+    angle limits). Rows per unit i, over f_i: d' f in [0, T_cap]; (e_alpha - k d)' f <= 0 and
+    >= 0 for k = cos(b0) tan(da_hi), cos(b0) tan(da_lo); likewise e_beta with tan(db_hi),
+    tan(db_lo). T_cap = T_max / sqrt(1 + k_a^2 + k_b^2) keeps |f_i| <= T_max (inner polytope).
+    """
+    k = a0.shape[0]
+    F = jet_frames(a0, b0, e1)
+    Va = axial_inflow(nu_r, pos, F)
+    t_max = np.empty(k)
+    win = np.empty((k, 4))
+    n_max = np.full(k, tp[7])
+    tm = thrust_of_speed(n_max, Va, tp)
+    for i in range(k):
+        t_max[i] = max(tm[i], 0.0)
+        win[i, 0] = max(-step, -lim - a0[i])
+        win[i, 1] = min(step, lim - a0[i])
+        win[i, 2] = max(-step, -lim - b0[i])
+        win[i, 3] = min(step, lim - b0[i])
+        cb = math.cos(b0[i])
+        kk = (cb * math.tan(win[i, 1]), cb * math.tan(win[i, 0]), math.tan(win[i, 3]), math.tan(win[i, 2]))
+        ka = max(kk[0] * kk[0], kk[1] * kk[1])
+        kb = max(kk[2] * kk[2], kk[3] * kk[3])
+        r = 5 * i
+        l[r], u[r] = 0.0, t_max[i] / math.sqrt(1.0 + ka + kb)
+        l[r + 1], u[r + 1] = -np.inf, 0.0
+        l[r + 2], u[r + 2] = 0.0, np.inf
+        l[r + 3], u[r + 3] = -np.inf, 0.0
+        l[r + 4], u[r + 4] = 0.0, np.inf
+        for j in range(3):
+            o = (3 * i + j) * 5
+            dj = F[i, 0, j]
+            ax[o] = dj
+            ax[o + 1] = F[i, 1, j] - kk[0] * dj
+            ax[o + 2] = F[i, 1, j] - kk[1] * dj
+            ax[o + 3] = F[i, 2, j] - kk[2] * dj
+            ax[o + 4] = F[i, 2, j] - kk[3] * dj
+    for c in range(3 * k):
+        s = wc * f_prev[c]
+        for r in range(6):
+            s += BtW[c, r] * tau[r]
+        q[c] = -2.0 * s
+    return t_max, win
+
+
+@njit(cache=True)
+def command_of_forces(f, a0, b0, win, nu_r, pos, e1, tp, lim):
+    """(n, alpha, beta) of planned force vectors f (k x 3): exact inverse, then the limits.
+
+    alpha, beta from f_i / |f_i|, clipped to this step's window and +-angle_limit; T_i = f_i . d_i
+    at the clipped angles (the part of f_i they can give), within [0, T_max at the new inflow];
+    n_i from the inverse of seed 000 eq. 15, within [0, n_max].
+    """
+    k = f.shape[0]
+    a, b = frame_angles(f, e1, a0, b0)
+    for i in range(k):
+        a[i] = min(max(min(max(a[i], a0[i] + win[i, 0]), a0[i] + win[i, 1]), -lim), lim)
+        b[i] = min(max(min(max(b[i], b0[i] + win[i, 2]), b0[i] + win[i, 3]), -lim), lim)
+    F = jet_frames(a, b, e1)
+    Va = axial_inflow(nu_r, pos, F)
+    tm = thrust_of_speed(np.full(k, tp[7]), Va, tp)
+    T = np.empty(k)
+    for i in range(k):
+        t = f[i, 0] * F[i, 0, 0] + f[i, 1] * F[i, 0, 1] + f[i, 2] * F[i, 0, 2]
+        T[i] = min(max(t, 0.0), max(tm[i], 0.0))
+    n = speed_of_thrust(T, Va, tp)
+    for i in range(k):
+        n[i] = min(max(n[i], 0.0), tp[7])
+    return n, a, b
+
+
+class JetGeometry:
+    """The jets of a vehicle: wrench map, unit frames and the seed-000 thrust model."""
+
+    def __init__(self, v: Vehicle):
+        self.vehicle = v
+        self.k = v.n_units
+        self.position = np.array([u.position for u in v.units], float)  # r_i (k, 3)
+        self.e1 = np.array([u.neutral for u in v.units], float)
+        self.B = model.wrench_map(v)  # tau = B f (6 x 3k), independent of the joint angles
+        t = v.thruster
+        self.tp = np.array([v.environment.rho, t.diameter, *t.kt, *t.j_range, t.n_max,
+                            1.0 if v.effects.on("thrust_inflow") else 0.0])
+        self.n_max = t.n_max
+        self.angle_limit = v.servo.angle_limit
+        self.rate_limit = v.servo.rate_limit
+
+    def frames(self, alpha, beta):
+        """d, e_alpha, e_beta of every unit, each (k, 3) (spec 3, 4.1)."""
+        F = jet_frames(np.asarray(alpha, float), np.asarray(beta, float), self.e1)
+        return F[:, 0], F[:, 1], F[:, 2]
+
+    def angles(self, force):
+        """(alpha, beta) of force directions (k, 3); zero forces give 0, 0."""
+        z = np.zeros(self.k)
+        return frame_angles(np.asarray(force, float), self.e1, z, z)
+
+    def axial_inflow(self, nu_r, alpha, beta):
+        """V_a,i at joint angles alpha, beta for body velocity relative to the water nu_r."""
+        F = jet_frames(np.asarray(alpha, float), np.asarray(beta, float), self.e1)
+        return axial_inflow(np.asarray(nu_r, float), self.position, F)
+
+    def effectiveness(self, alpha, beta) -> np.ndarray:
+        """6 x k map from thrust magnitudes to the body wrench: column i = [d_i, r_i x d_i]."""
+        d, _, _ = self.frames(alpha, beta)
+        return np.vstack([d.T, np.cross(self.position, d).T])
+
+    def thrust(self, n, v_axial) -> np.ndarray:
+        """T(n, V_a) of each unit (seed 000 eq. 15)."""
+        return thrust_of_speed(np.asarray(n, float), np.asarray(v_axial, float), self.tp)
+
+    def thrust_max(self, v_axial) -> np.ndarray:
+        """T_max(J) = T(n_max, V_a): the most a jet gives against its axial inflow (>= 0)."""
+        return np.maximum(self.thrust(np.full(self.k, self.n_max), v_axial), 0.0)
+
+    def speed(self, thrust, v_axial) -> np.ndarray:
+        """n with T(n, V_a) = thrust (inverse of seed 000 eq. 15, closed form)."""
+        return speed_of_thrust(np.asarray(thrust, float), np.asarray(v_axial, float), self.tp)
+
+    def evaluate(self, n, alpha, beta, nu_r=None):
+        """(T, force vectors (k, 3), wrench) of command (n, alpha, beta) at inflow nu_r."""
+        nu = np.zeros(6) if nu_r is None else np.asarray(nu_r, float)
+        return evaluate(np.asarray(n, float), np.asarray(alpha, float), np.asarray(beta, float),
+                        nu, self.position, self.e1, self.tp)
+
+
+# ------------------------------------------------------------------------------------------------
+# Result
+
+
+def _frozen(a) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class Allocation:
+    """One allocation: the command, what it achieves, and the solver's diagnostics.
+
+    `residual_wrench` = achieved - demand ([N, N, N, N m, N m, N m], body FRD);
+    `weighted_error` = sqrt(residual' W residual) with the allocator's W.
+    """
+
+    n_rev_s: np.ndarray
+    alpha_rad: np.ndarray
+    beta_rad: np.ndarray
+    thrust_n: np.ndarray
+    force_body_n: np.ndarray  # (k, 3) planned force vector of each unit
+    wrench_demand: np.ndarray
+    wrench_achieved: np.ndarray
+    residual_wrench: np.ndarray
+    weighted_error: float
+    status: str
+    solve_time_s: float  # the whole allocate() call (setup of the step, solve, conversion)
+    qp_time_s: float  # OSQP's own run time (0 for the baseline)
+    iterations: int
+    fallback: bool
+    thrust_max_n: np.ndarray = field(default_factory=lambda: _frozen([]))
+
+    @property
+    def command(self) -> np.ndarray:
+        """u = [n_cmd (rev/s) x k, alpha_cmd (rad) x k, beta_cmd (rad) x k]."""
+        return np.concatenate([self.n_rev_s, self.alpha_rad, self.beta_rad])
+
+    def pwm_us(self, v: Vehicle) -> np.ndarray:
+        """PWM on channels 1..16 (onboard.pwm maps of the vehicle file)."""
+        return pwm.command_to_pwm(v, self.command)
+
+    def normalised(self, v: Vehicle) -> np.ndarray:
+        """HIL_ACTUATOR_CONTROLS layout: jets 0..1, then azimuths and elevations -1..1."""
+        return pwm.command_to_normalised(v, self.command)
+
+
+# ------------------------------------------------------------------------------------------------
+# Shared pieces of both allocators
+
+
+def _vector(x, size: int, what: str) -> np.ndarray:
+    a = np.asarray(x, dtype=float).reshape(-1)
+    if a.shape != (size,):
+        raise ValueError(f"{what}: expected {size} values, got shape {np.shape(x)}")
+    return a
+
+
+class _Base:
+    def __init__(self, v: Vehicle, dt_s: float, config: AllocationConfig | None = None):
+        if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s: expected the control period in seconds (> 0), got {dt_s!r}")
+        self.vehicle = v
+        self.geo = JetGeometry(v)
+        self.k = v.n_units
+        self.dt_s = float(dt_s)
+        self.config = config if config is not None else AllocationConfig.from_vehicle(v)
+        self.W = self.config.weight_matrix()
+        self.previous: Allocation | None = None
+
+    def _inputs(self, wrench, alpha, beta, nu_r):
+        k = self.k
+        tau = _vector(wrench, 6, "wrench demand [X, Y, Z, K, M, N]")  # may be non-finite: fallback
+        if alpha is None:
+            alpha = self.previous.alpha_rad if self.previous is not None else np.zeros(k)
+        if beta is None:
+            beta = self.previous.beta_rad if self.previous is not None else np.zeros(k)
+        lim = self.geo.angle_limit
+        a0 = np.clip(_vector(alpha, k, "alpha_rad (current azimuths)"), -lim, lim)
+        b0 = np.clip(_vector(beta, k, "beta_rad (current elevations)"), -lim, lim)
+        nu = np.zeros(6) if nu_r is None else _vector(nu_r, 6, "nu_r (body velocity relative to the water)")
+        if not (np.all(np.isfinite(a0)) and np.all(np.isfinite(b0))):
+            raise ValueError("current joint angles must be finite")
+        if not np.all(np.isfinite(nu)):
+            nu = np.zeros(6)  # a diverged estimate must not poison the thrust limits
+        return tau, a0, b0, nu
+
+    def _finish(self, tau, n, alpha, beta, nu, status, solve_time, iters, fallback, t_max, qp_time=0.0):
+        """Exact forward model of the final command: thrust at its own inflow, achieved wrench."""
+        g = self.geo
+        T, force, achieved = evaluate(n, alpha, beta, nu, g.position, g.e1, g.tp)
+        res = achieved - tau
+        err = float(np.sqrt(res @ self.W @ res)) if np.all(np.isfinite(res)) else float("nan")
+        return Allocation(
+            n_rev_s=_frozen(n), alpha_rad=_frozen(alpha), beta_rad=_frozen(beta), thrust_n=_frozen(T),
+            force_body_n=_frozen(force), wrench_demand=_frozen(tau), wrench_achieved=_frozen(achieved),
+            residual_wrench=_frozen(res), weighted_error=err, status=status, solve_time_s=float(solve_time),
+            qp_time_s=float(qp_time), iterations=int(iters), fallback=bool(fallback), thrust_max_n=_frozen(t_max),
+        )
+
+    def commit(self, allocation: Allocation) -> None:
+        """Make `allocation` the previous one (the change reference and the fallback)."""
+        self.previous = allocation
+
+
+# ------------------------------------------------------------------------------------------------
+# Baseline: fixed mixing (ArduSub-style)
+
+
+class PseudoInverseAllocator(_Base):
+    """ArduSub-style fixed mixing: t = pinv(E(alpha, beta)) tau, clipped to [0, T_max(J)].
+
+    The joints stay where they are (E is the effectiveness at the current angles); this is what
+    a user has without vectoring-aware allocation.
+    """
+
+    def allocate(self, wrench, alpha=None, beta=None, nu_r=None, commit: bool = True) -> Allocation:
+        t0 = time.perf_counter()
+        tau, a0, b0, nu = self._inputs(wrench, alpha, beta, nu_r)
+        g = self.geo
+        Va = g.axial_inflow(nu, a0, b0)
+        t_max = g.thrust_max(Va)
+        if np.all(np.isfinite(tau)):
+            T = np.clip(np.linalg.pinv(g.effectiveness(a0, b0)) @ tau, 0.0, t_max)
+            status = "solved"
+        else:
+            T = np.zeros(self.k)
+            status = "fallback: non-finite demand; jets off"
+        n = np.clip(g.speed(T, Va), 0.0, g.n_max)
+        out = self._finish(tau, n, a0, b0, nu, status, time.perf_counter() - t0, 0, status != "solved", t_max)
+        if commit:
+            self.commit(out)
+        return out
+
+
+# ------------------------------------------------------------------------------------------------
+# The QP allocator
+
+
+class QpAllocator(_Base):
+    """Weighted-wrench QP over the units' force vectors; OSQP set up once, updated each step.
+
+    `allocate(tau, alpha, beta, nu_r)` plans the command for the next control period `dt_s`
+    from the current joint angles (default: the last committed command) and the estimated
+    velocity relative to the water nu_r (for each jet's inflow and so its T_max). With
+    `commit=False` it only plans (the transient compensator iterates that way); `commit()`
+    makes a plan the reference for the change penalty and the fallback.
+    """
+
+    ROWS = 5  # constraint rows per unit
+
+    def __init__(self, v: Vehicle, dt_s: float, config: AllocationConfig | None = None):
+        super().__init__(v, dt_s, config)
+        k, c = self.k, self.config
+        Fs2 = c.force_scale_n**2
+        B = self.geo.B
+        # Objective 1/2 x'Px + q'x with P = 2 (B'WB + (w_e + w_c) I): B does not depend on the
+        # joint angles, so P is fixed; only q, A's values and the bounds change per step.
+        H = B.T @ self.W @ B + (c.effort_weight + c.change_weight) / Fs2 * np.eye(3 * k)
+        self._H = H
+        self._BtW = np.ascontiguousarray(B.T @ self.W)
+        self._wc = c.change_weight / Fs2
+        P = sp.triu(sp.csc_matrix(2.0 * H), format="csc")
+        # Constraint matrix: 5 rows per unit, each dense over the unit's 3 variables; the pattern
+        # is fixed (explicit zeros kept) so `update(Ax=...)` refills it in place.
+        m = self.ROWS * k
+        indptr = np.arange(3 * k + 1, dtype=np.int64) * self.ROWS
+        indices = np.concatenate([np.arange(self.ROWS) + self.ROWS * (col // 3) for col in range(3 * k)])
+        self._q = np.zeros(3 * k)
+        self._l = np.zeros(m)
+        self._u = np.zeros(m)
+        self._ax = np.zeros(3 * k * self.ROWS)
+        z = np.zeros(k)
+        plan_step(np.zeros(6), z, z, np.zeros(6), self.geo.position, self.geo.e1, self.geo.tp,
+                  self.geo.angle_limit, 0.0, self._BtW, 0.0, np.zeros(3 * k), self._q, self._l, self._u, self._ax)
+        A = sp.csc_matrix((self._ax.copy(), indices, indptr), shape=(m, 3 * k))
+        self._solver = osqp.OSQP()
+        self._solver.setup(
+            P, self._q, A, self._l, self._u,
+            verbose=False, warm_starting=True, polishing=False, eps_abs=c.eps_abs, eps_rel=c.eps_rel,
+            max_iter=c.max_iter, time_limit=c.time_budget_s, check_termination=5,
+            adaptive_rho=True, adaptive_rho_interval=25,
+        )
+        self.setups = 1  # the workspace is built once here and only updated afterwards
+
+    def window_step_rad(self) -> float:
+        """Joint travel allowed per step, rate_limit * dt (also bounded by the angle limits)."""
+        return self.geo.rate_limit * self.dt_s
+
+    def allocate(self, wrench, alpha=None, beta=None, nu_r=None, commit: bool = True) -> Allocation:
+        t_start = time.perf_counter()
+        tau, a0, b0, nu = self._inputs(wrench, alpha, beta, nu_r)
+        g = self.geo
+        f_prev = self._previous_force()
+        finite = bool(np.all(np.isfinite(tau)))
+        t_max, win = plan_step(tau if finite else np.zeros(6), a0, b0, nu, g.position, g.e1, g.tp,
+                               g.angle_limit, self.window_step_rad(), self._BtW, self._wc, f_prev,
+                               self._q, self._l, self._u, self._ax)
+        if not finite:
+            return self._fallback(tau, a0, b0, nu, "non-finite demand", 0.0, 0, t_max, commit)
+        self._solver.update(q=self._q, l=self._l, u=self._u, Ax=self._ax)
+        x, info = self._solve()
+        elapsed = time.perf_counter() - t_start
+        status = str(info.status)
+        ok = info.status_val in _SOLVED
+        if not ok or elapsed > self.config.time_budget_s or x is None or not np.all(np.isfinite(x)):
+            reason = status if not ok else (
+                f"over time budget ({elapsed * 1e6:.0f} us > {self.config.time_budget_s * 1e6:.0f} us)")
+            return self._fallback(tau, a0, b0, nu, reason, elapsed, info.iter, t_max, commit)
+        f = np.asarray(x, float).reshape(self.k, 3)
+        n, alpha, beta = command_of_forces(f, a0, b0, win, nu, g.position, g.e1, g.tp, g.angle_limit)
+        out = self._finish(tau, n, alpha, beta, nu, status, time.perf_counter() - t_start, info.iter, False, t_max,
+                           info.run_time)
+        if commit:
+            self.commit(out)
+        return out
+
+    def _solve(self):
+        """OSQP solve -> (x, info). The compiled solver is called directly where the wrapper
+        exposes it: the Python wrapper builds a result namespace that costs more than the solve."""
+        inner = getattr(self._solver, "_solver", None)
+        if inner is not None and hasattr(inner, "solution") and hasattr(inner, "info"):
+            inner.solve()
+            return np.array(inner.solution.x), inner.info
+        res = self._solver.solve(raise_error=False)  # pragma: no cover - other osqp versions
+        return res.x, res.info
+
+    def _previous_force(self):
+        if self.previous is None:
+            return np.zeros(3 * self.k)
+        return np.ascontiguousarray(self.previous.force_body_n, dtype=float).reshape(-1)
+
+    def _fallback(self, tau, a0, b0, nu, reason, elapsed, iters, t_max, commit):
+        """Keep the previous command (clipped to this step's joint window), or jets off if none."""
+        if self.previous is not None:
+            step = self.window_step_rad()
+            lim = self.geo.angle_limit
+            alpha = np.clip(np.clip(self.previous.alpha_rad, a0 - step, a0 + step), -lim, lim)
+            beta = np.clip(np.clip(self.previous.beta_rad, b0 - step, b0 + step), -lim, lim)
+            n = np.clip(self.previous.n_rev_s, 0.0, self.geo.n_max)
+            what = "previous command kept"
+        else:
+            alpha, beta, n = a0.copy(), b0.copy(), np.zeros(self.k)
+            what = "no previous command: jets off"
+        out = self._finish(tau, n, alpha, beta, nu, f"fallback: {reason}; {what}", elapsed, iters, True, t_max)
+        if commit:
+            self.commit(out)
+        return out
+
+    def unconstrained(self, wrench, f_prev=None) -> np.ndarray:
+        """The QP's minimiser without constraints, (B'WB + (w_e + w_c) I)^-1 (B'W tau + w_c f_prev).
+
+        A regularised weighted pseudo-inverse; the QP equals it whenever no limit is active.
+        """
+        f_prev = np.zeros(3 * self.k) if f_prev is None else np.asarray(f_prev, float).reshape(-1)
+        return np.linalg.solve(self._H, self._BtW @ np.asarray(wrench, float) + self._wc * f_prev).reshape(self.k, 3)
+
+
+__all__ = [
+    "AXES",
+    "AllocationConfig",
+    "Allocation",
+    "JetGeometry",
+    "QpAllocator",
+    "PseudoInverseAllocator",
+]
