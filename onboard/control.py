@@ -1,0 +1,468 @@
+"""Depth, attitude and body-velocity control with model feed-forward: estimate + setpoint -> wrench.
+
+Pure math, one stateful object (`Controller`: reference models and integrators), no clock and
+no IO. Every degree of freedom follows a smooth reference (a prefilter on the setpoint) and the
+demand is the model's inverse dynamics along that reference plus mass-scaled feedback
+(Fossen 2011 sec. 12.3, "computed torque" / model-based feed-forward):
+
+    tau = M (nu_r' + a_fb) + C(nu) nu + D(nu_r) nu_r + g_F(eta)                        (1)
+
+- M = M_RB + M_A from `onboard.model.mass_matrix` at the estimated depth (surface and wall
+  effects scale the added mass as in the plant); C(nu) nu the Coriolis/centripetal terms at the
+  estimate; D(nu_r) nu_r the linear + quadratic damping at the REFERENCE velocity; g_F the force
+  part of the restoring term g(eta) at the estimated attitude (net buoyancy, ~1.5 N up on the
+  reference vehicle, scaled by the submerged fraction near the surface). The restoring MOMENT is
+  left to act: the vehicle is bottom-heavy and its righting moment helps hold it level.
+- a_fb is the feedback acceleration: PID on depth (NED z, mapped to the body by R^T), PID on the
+  small-angle attitude error (body frame), PI on surge and sway velocity.
+- `feedforward=False` keeps exactly the same feedback (same gains, same M scaling) and drops
+  nu_r', C, D and g_F: "gains alone", the baseline the tests compare against.
+
+Gains come from bandwidths, not from hand-tuned numbers (`Gains`, `Controller.gains_si`): with
+M_ii the diagonal of the model's mass matrix (rigid body + added mass) each loop is shaped as
+mass-normalised error dynamics:
+    position/attitude, bandwidth w, damping z:  a_fb = w^2 e + 2 z w e' + (w^3 / 10) int e
+        (char. polynomial s^3 + 2 z w s^2 + w^2 s + w^3/10: the PD pair at w, the integral pole
+        near w/10; Routh-stable since 2 z w^3 > w^3 / 10)
+    velocity, bandwidth w:                      a_fb = w e + (w^2 / 4) int e
+        (s^2 + w s + w^2 / 4 = (s + w/2)^2, critically damped)
+so the force gains are K_p = M_ii w^2, K_d = 2 z w M_ii, ... The default bandwidths sit a factor
+4 or more below the actuators (motor lag 0.08 s -> 12.5 rad/s; servo 0.03 s with a 5 rad/s rate
+limit) so the allocator and the jets can follow.
+
+Anti-windup: each integrator is clamped so its share of the acceleration stays within
+`integral_share` of the axis capacity (capacity: what the jets can give on that axis, from the
+bollard thrust and the geometry, `axis_capacity`); and it stops integrating (conditional
+integration) while the axis demand is saturated in the direction of its error, judged from the
+achieved wrench the allocator reports (`step(..., achieved=...)`) or else from the capacity.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import model
+from .estimator import EstimatedState
+from .vehicle import Vehicle
+
+
+# ------------------------------------------------------------------------------------------------
+# Domain types
+
+def _finite(name: str, value, allow_none: bool = True):
+    if value is None and allow_none:
+        return None
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"Setpoint.{name}: expected a finite number{' or None' if allow_none else ''}, got {value!r}") from None
+    if not math.isfinite(f):
+        raise ValueError(f"Setpoint.{name}: expected a finite number, got {value!r}")
+    return f
+
+
+@dataclass(frozen=True)
+class ManualAxes:
+    """MANUAL_CONTROL-style stick axes, each normalised to [-1, 1] (the link maps the raw +-1000).
+
+    surge: forward +; sway: right +; heave_down: descend +; yaw_right: clockwise seen from above +.
+    (ArduSub's z throttle 0..1000 with 500 neutral, up above 500, maps to heave_down = (500 - z) / 500.)
+    """
+
+    surge: float = 0.0
+    sway: float = 0.0
+    heave_down: float = 0.0
+    yaw_right: float = 0.0
+
+    def __post_init__(self):
+        for name in ("surge", "sway", "heave_down", "yaw_right"):
+            v = _finite(f"manual.{name}", getattr(self, name), allow_none=False)
+            object.__setattr__(self, name, min(max(v, -1.0), 1.0))
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """What the vehicle should do. None leaves an axis to the rules below.
+
+    - depth_m: hold this depth (m below the surface). Wins over a heave velocity.
+    - yaw_rad: hold this heading (NED, ZYX yaw); None holds the heading the reference is at.
+    - velocity_body_m_s: (u, v, w) in m/s; None on u or v leaves that axis uncontrolled (no force);
+      w is used only when depth_m is None (the depth reference then moves at w); both None: heave
+      uncontrolled (the vehicle rises slowly by its buoyancy).
+    - manual: stick axes; when given it replaces depth/yaw/velocity: sticks command body
+      velocities and yaw rate, a centred heave or yaw stick holds the depth or heading reached.
+    Roll and pitch are always held level.
+    """
+
+    depth_m: float | None = None
+    yaw_rad: float | None = None
+    velocity_body_m_s: tuple = (0.0, 0.0, None)
+    manual: ManualAxes | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "depth_m", _finite("depth_m", self.depth_m))
+        object.__setattr__(self, "yaw_rad", _finite("yaw_rad", self.yaw_rad))
+        vel = self.velocity_body_m_s
+        if vel is None or len(tuple(vel)) != 3:
+            raise ValueError(f"Setpoint.velocity_body_m_s: expected (u, v, w) with numbers or None, got {vel!r}")
+        object.__setattr__(self, "velocity_body_m_s", tuple(
+            _finite(f"velocity_body_m_s[{i}]", c) for i, c in enumerate(vel)))
+        if self.manual is not None and not isinstance(self.manual, ManualAxes):
+            raise ValueError(f"Setpoint.manual: expected ManualAxes or None, got {type(self.manual).__name__}")
+
+
+@dataclass(frozen=True)
+class Wrench:
+    """A body-frame wrench: force (N, FRD) and moment (N m, about the body origin)."""
+
+    force_body_n: tuple = (0.0, 0.0, 0.0)
+    moment_body_nm: tuple = (0.0, 0.0, 0.0)
+
+    def as_array(self) -> np.ndarray:
+        """[X, Y, Z, K, M, N]."""
+        return np.array(tuple(self.force_body_n) + tuple(self.moment_body_nm), dtype=float)
+
+    @classmethod
+    def from_array(cls, tau) -> "Wrench":
+        t = [float(c) for c in np.asarray(tau, dtype=float).reshape(6)]
+        return cls(tuple(t[:3]), tuple(t[3:]))
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The smoothed references the controller tracks at this step (for telemetry and scoring)."""
+
+    depth_m: float | None
+    depth_rate_m_s: float
+    yaw_rad: float
+    yaw_rate_rad_s: float
+    velocity_body_m_s: tuple  # u_r, v_r (None if uncontrolled), w_r
+    feedforward: Wrench
+    feedback: Wrench
+
+
+@dataclass(frozen=True)
+class Gains:
+    """Loop bandwidths (rad/s) and limits; force/moment gains follow from the vehicle's M.
+
+    Defaults suit the reference vehicle (actuator corners near 12 rad/s, see module docstring).
+    """
+
+    depth_bandwidth_rad_s: float = 1.2
+    attitude_bandwidth_rad_s: float = 3.0  # roll and pitch
+    yaw_bandwidth_rad_s: float = 2.0
+    velocity_bandwidth_rad_s: float = 1.5  # surge and sway
+    damping_ratio: float = 0.9
+    depth_reference_rad_s: float = 1.0  # prefilter on depth setpoints (critically damped)
+    yaw_reference_rad_s: float = 1.2  # prefilter on yaw setpoints
+    velocity_reference_s: float = 0.8  # first-order prefilter on velocity setpoints
+    max_depth_rate_m_s: float = 0.25  # reference heave speed limit
+    max_yaw_rate_rad_s: float = 0.8  # reference yaw rate limit
+    manual_speed_m_s: float = 0.4  # full stick surge/sway
+    manual_heave_m_s: float = 0.25  # full stick heave
+    manual_yaw_rate_rad_s: float = 0.8  # full stick yaw rate
+    manual_deadband: float = 0.05
+    integral_share: float = 0.3  # integrator may use this share of the axis capacity
+    feedforward: bool = True
+
+    def __post_init__(self):
+        for f in self.__dataclass_fields__:
+            v = getattr(self, f)
+            if f == "feedforward":
+                continue
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"Gains.{f}: expected a finite number > 0, got {v!r}")
+
+
+def axis_capacity(vehicle: Vehicle) -> np.ndarray:
+    """Rough per-axis wrench the jets can give: k T_max on forces, k T_max |r|_max / 2 on moments.
+
+    T_max = rho D^4 n_max^2 kt0 (bollard thrust, seed 000 eq. 15 at J = 0). Used only for
+    anti-windup, never to clip the demand (the allocator degrades by its weights).
+    """
+    e, t = vehicle.environment, vehicle.thruster
+    t_max = e.rho * t.diameter ** 4 * t.n_max ** 2 * t.kt[0]
+    k = vehicle.n_units
+    r = max(math.sqrt(sum(c * c for c in u.position)) for u in vehicle.units)
+    return np.array([k * t_max] * 3 + [0.5 * k * t_max * r] * 3)
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+# ------------------------------------------------------------------------------------------------
+
+class Controller:
+    """Model feed-forward + PID/PI feedback; `step(estimate, setpoint, dt) -> Wrench`."""
+
+    def __init__(self, vehicle: Vehicle, gains: Gains | None = None):
+        self.vehicle = vehicle
+        self.gains = gains or Gains()
+        self.params = model.pack_params(vehicle)
+        self.capacity = axis_capacity(vehicle)
+        self._on_surface = vehicle.effects.on("surface_proximity")
+        self._on_wall = vehicle.effects.on("wall_proximity")
+        self._on_current = vehicle.effects.on("current")
+        self.reset()
+
+    @property
+    def gains_si(self) -> dict:
+        """The force/moment gains implied by the bandwidths and M at 0.5 m (for docs and checks)."""
+        M = np.diag(self._mass_matrix(0.5))
+        g = self.gains
+        z = g.damping_ratio
+        w_z, w_a, w_y, w_v = (g.depth_bandwidth_rad_s, g.attitude_bandwidth_rad_s,
+                              g.yaw_bandwidth_rad_s, g.velocity_bandwidth_rad_s)
+        return {
+            "depth_kp_n_m": M[2] * w_z ** 2, "depth_kd_n_s_m": 2 * z * w_z * M[2], "depth_ki_n_m_s": M[2] * w_z ** 3 / 10,
+            "roll_kp_nm_rad": M[3] * w_a ** 2, "roll_kd_nm_s_rad": 2 * z * w_a * M[3],
+            "pitch_kp_nm_rad": M[4] * w_a ** 2, "pitch_kd_nm_s_rad": 2 * z * w_a * M[4],
+            "yaw_kp_nm_rad": M[5] * w_y ** 2, "yaw_kd_nm_s_rad": 2 * z * w_y * M[5],
+            "surge_kv_n_s_m": M[0] * w_v, "surge_ki_n_m": M[0] * w_v ** 2 / 4,
+            "sway_kv_n_s_m": M[1] * w_v, "sway_ki_n_m": M[1] * w_v ** 2 / 4,
+        }
+
+    def reset(self) -> None:
+        """Forget references and integrators; the next step starts from the estimate."""
+        self._started = False
+        self._z_r = 0.0
+        self._zd_r = 0.0
+        self._depth_held = False
+        self._psi_r = 0.0
+        self._psid_r = 0.0
+        self._vel_r = np.zeros(2)
+        self._int_z = 0.0  # int (z_r - z) dt, NED
+        self._int_att = np.zeros(3)  # int e_att dt, body
+        self._int_vel = np.zeros(2)  # int (u_r - u) dt, (v_r - v) dt
+        self._last_tau = np.zeros(6)
+        self.reference: Reference | None = None
+
+    # -- model pieces --------------------------------------------------------------------------
+    def _mass_matrix(self, depth_m: float) -> np.ndarray:
+        p = self.params
+        s = model.submerged_fraction(depth_m, p[model.P_RADIUS]) if self._on_surface else 1.0
+        z = depth_m + p[model.P_SURF]
+        wall = model.wall_factor(z, p[model.P_FLOOR], p[model.P_RADIUS], p[model.P_KWALL]) if self._on_wall else 1.0
+        return model.mass_matrix(p, s, wall)
+
+    # -- the step ------------------------------------------------------------------------------
+    def step(self, estimate: EstimatedState, setpoint: Setpoint, dt: float, achieved=None) -> Wrench:
+        """The demanded body wrench for this step (eq. 1). `achieved` (6, optional): the wrench the
+        allocator achieved last step, for anti-windup."""
+        dt = float(dt)
+        if not (math.isfinite(dt) and 0.0 < dt <= 1.0):
+            raise ValueError(f"Controller.step: dt must be a finite time step in (0, 1] s, got {dt!r}")
+        g = self.gains
+        p = self.params
+        phi, theta, psi = estimate.euler_rad
+        z = estimate.depth_m
+        nu = np.array(tuple(estimate.velocity_body_m_s) + tuple(estimate.rates_rad_s), dtype=float)
+        if not (np.all(np.isfinite(nu)) and math.isfinite(z) and all(map(math.isfinite, (phi, theta, psi)))):
+            raise ValueError("Controller.step: the estimate holds non-finite values; hold the failsafe instead")
+        if not self._started:
+            self._z_r, self._zd_r = z, 0.0
+            self._psi_r, self._psid_r = psi, 0.0
+            self._vel_r = nu[0:2].copy()
+            self._started = True
+
+        # ---- references (prefilters) --------------------------------------------------------
+        man = setpoint.manual
+        db = g.manual_deadband
+        if man is not None:
+            u_sp = man.surge * g.manual_speed_m_s
+            v_sp = man.sway * g.manual_speed_m_s
+            heave_rate = man.heave_down * g.manual_heave_m_s if abs(man.heave_down) > db else None
+            yaw_rate = man.yaw_right * g.manual_yaw_rate_rad_s if abs(man.yaw_right) > db else 0.0
+            depth_sp, yaw_sp, heave_on = None, None, True
+        else:
+            u_sp, v_sp, w_sp = setpoint.velocity_body_m_s
+            depth_sp, yaw_sp = setpoint.depth_m, setpoint.yaw_rad
+            heave_rate = w_sp if depth_sp is None else None
+            heave_on = depth_sp is not None or w_sp is not None
+            yaw_rate = 0.0
+        zdd_r = psidd_r = 0.0
+        if depth_sp is not None:
+            # z_r'' = w^2 (z_sp - z_r) - 2 w z_r', |z_r'| <= max rate (critically damped prefilter)
+            w = g.depth_reference_rad_s
+            zdd_r = w * w * (depth_sp - self._z_r) - 2.0 * w * self._zd_r
+            zd_new = min(max(self._zd_r + zdd_r * dt, -g.max_depth_rate_m_s), g.max_depth_rate_m_s)
+            zdd_r = (zd_new - self._zd_r) / dt
+            self._zd_r = zd_new
+            self._z_r += self._zd_r * dt
+        elif heave_rate is not None:
+            # moving depth reference: z_r' follows the commanded heave rate (first order)
+            target = min(max(heave_rate, -g.max_depth_rate_m_s), g.max_depth_rate_m_s)
+            zdd_r = (target - self._zd_r) / g.velocity_reference_s
+            self._zd_r += zdd_r * dt
+            self._z_r += self._zd_r * dt
+        elif heave_on:
+            # hold (centred stick): the reference slows to a stop (first order) and stays there
+            zdd_r = -self._zd_r / g.velocity_reference_s
+            self._zd_r += zdd_r * dt
+            self._z_r += self._zd_r * dt
+        else:
+            # heave free: the reference follows the vehicle, ready for the next depth command
+            self._z_r, self._zd_r = z, 0.0
+        if yaw_sp is not None:
+            w = g.yaw_reference_rad_s
+            psidd_r = w * w * _wrap(yaw_sp - self._psi_r) - 2.0 * w * self._psid_r
+        else:
+            psidd_r = (min(max(yaw_rate, -g.max_yaw_rate_rad_s), g.max_yaw_rate_rad_s) - self._psid_r) / g.velocity_reference_s
+        psid_new = min(max(self._psid_r + psidd_r * dt, -g.max_yaw_rate_rad_s), g.max_yaw_rate_rad_s)
+        psidd_r = (psid_new - self._psid_r) / dt
+        self._psid_r = psid_new
+        self._psi_r = _wrap(self._psi_r + self._psid_r * dt)
+        vel_on = [u_sp is not None, v_sp is not None]
+        vel_sp = np.array([u_sp or 0.0, v_sp or 0.0])
+        vel_dot_r = (vel_sp - self._vel_r) / g.velocity_reference_s  # u_r' = (u_sp - u_r) / T
+        for i in range(2):
+            if not vel_on[i]:
+                self._vel_r[i], vel_dot_r[i] = nu[i], 0.0
+        self._vel_r = self._vel_r + vel_dot_r * dt
+
+        # ---- kinematics ----------------------------------------------------------------------
+        q = model.euler_to_quat(phi, theta, psi)
+        R = model.rotation(q)  # body -> NED
+        Rt = R.T
+        # body rates of the level reference turning at psi_r': w_r = T^-1(phi, theta) [0, 0, psi_r']
+        # (Fossen 2011 eq. 2.30: p = phi' - s(theta) psi', q = c(phi) theta' + s(phi) c(theta) psi',
+        #  r = -s(phi) theta' + c(phi) c(theta) psi')
+        sph, cph, sth, cth = math.sin(phi), math.cos(phi), math.sin(theta), math.cos(theta)
+        t_inv = np.array([-sth, sph * cth, cph * cth])
+        w_ref = t_inv * self._psid_r
+        wd_ref = t_inv * psidd_r
+        # reference body velocity / acceleration: surge and sway from their prefilter, heave from
+        # the depth reference mapped to the body: v_r = [u_r, v_r, 0] + R^T [0, 0, z_r']
+        e3b = Rt[:, 2]
+        v_ref = np.array([self._vel_r[0], self._vel_r[1], 0.0]) + e3b * (self._zd_r if heave_on else 0.0)
+        vd_ref = np.array([vel_dot_r[0], vel_dot_r[1], 0.0]) + e3b * (zdd_r if heave_on else 0.0)
+        if not vel_on[0]:
+            v_ref[0], vd_ref[0] = nu[0], 0.0
+        if not vel_on[1]:
+            v_ref[1], vd_ref[1] = nu[1], 0.0
+        nu_ref = np.concatenate([v_ref, w_ref])
+        nud_ref = np.concatenate([vd_ref, wd_ref])
+
+        # ---- errors -------------------------------------------------------------------------
+        # attitude: q_e = q^-1 (x) q_ref, e = 2 sgn(q_e,w) vec(q_e) (body frame, small angle)
+        q_ref = model.euler_to_quat(0.0, 0.0, self._psi_r)
+        qe = _quat_mul(_quat_conj(q), q_ref)
+        e_att = 2.0 * math.copysign(1.0, qe[0]) * qe[1:4]
+        e_rate = w_ref - nu[3:6]
+        e_z = self._z_r - z if heave_on else 0.0
+        e_zd = self._zd_r - estimate.depth_rate_m_s if heave_on else 0.0
+        e_vel = self._vel_r - nu[0:2]
+
+        # ---- anti-windup: which axes may integrate ------------------------------------------
+        cap = self.capacity
+        demand = self._last_tau
+        if achieved is not None:
+            got = np.asarray(achieved, dtype=float).reshape(6)
+            sat = np.isfinite(got) & (np.abs(demand - got) > 0.05 * cap)
+        else:
+            sat = np.abs(demand) >= cap
+        sat_dir = np.sign(demand)
+
+        def may_integrate(axis: int, err: float) -> bool:
+            return not (sat[axis] and np.sign(err) == sat_dir[axis])
+
+        M = self._mass_matrix(z)
+        Md = np.diag(M)
+        share = g.integral_share
+        # depth (NED z): PID in acceleration form
+        wz, zeta = g.depth_bandwidth_rad_s, g.damping_ratio
+        a_z = 0.0
+        if heave_on:
+            ki = wz ** 3 / 10.0
+            if may_integrate(2, e_z * e3b[2]):
+                self._int_z += e_z * dt
+            lim = share * cap[2] / Md[2] / ki
+            self._int_z = min(max(self._int_z, -lim), lim)
+            a_z = wz * wz * e_z + 2.0 * zeta * wz * e_zd + ki * self._int_z
+        else:
+            self._int_z = 0.0
+        a_fb = np.zeros(6)
+        a_fb[0:3] = e3b * a_z  # NED vertical acceleration expressed in the body
+        # surge, sway: PI on velocity
+        wv = g.velocity_bandwidth_rad_s
+        for i in range(2):
+            if not vel_on[i]:
+                self._int_vel[i] = 0.0
+                continue
+            ki = wv * wv / 4.0
+            if may_integrate(i, e_vel[i]):
+                self._int_vel[i] += e_vel[i] * dt
+            lim = share * cap[i] / Md[i] / ki
+            self._int_vel[i] = min(max(self._int_vel[i], -lim), lim)
+            a_fb[i] += wv * e_vel[i] + ki * self._int_vel[i]
+        # roll, pitch, yaw: PID on the attitude error
+        for j in range(3):
+            wa = g.attitude_bandwidth_rad_s if j < 2 else g.yaw_bandwidth_rad_s
+            ki = wa ** 3 / 10.0
+            if may_integrate(3 + j, e_att[j]):
+                self._int_att[j] += e_att[j] * dt
+            lim = share * cap[3 + j] / Md[3 + j] / ki
+            self._int_att[j] = min(max(self._int_att[j], -lim), lim)
+            a_fb[3 + j] = wa * wa * e_att[j] + 2.0 * zeta * wa * e_rate[j] + ki * self._int_att[j]
+
+        # ---- eq. (1) ----------------------------------------------------------------------------
+        tau_fb = M @ a_fb
+        if g.feedforward:
+            nu_c = np.zeros(6)
+            if self._on_current:
+                nu_c[0:3] = Rt @ np.asarray(self.vehicle.environment.current, float)
+            s = model.submerged_fraction(z, p[model.P_RADIUS]) if self._on_surface else 1.0
+            nu_r_ref = nu_ref - nu_c
+            tau_ff = (
+                M @ nud_ref  # M nu_r'
+                + model.coriolis_times_nu(M, nu - nu_c)  # C(nu_r) nu_r at the estimate
+                + model.damping(nu_r_ref, p)  # D(nu_r) nu_r at the reference
+            )
+            g_eta = -model.restoring(R, p, s)  # g(eta): model.restoring returns -g(eta)
+            tau_ff[0:3] += g_eta[0:3]  # forces only: the righting moment is left to help
+            for i in range(2):
+                if not vel_on[i]:
+                    tau_ff[i] = 0.0
+            if not heave_on:
+                tau_ff[0:3] -= e3b * float(e3b @ tau_ff[0:3])  # no vertical effort when heave is free
+        else:
+            tau_ff = np.zeros(6)
+        tau = tau_fb + tau_ff
+        self._last_tau = tau
+        self.reference = Reference(
+            depth_m=self._z_r if heave_on else None,
+            depth_rate_m_s=self._zd_r,
+            yaw_rad=self._psi_r,
+            yaw_rate_rad_s=self._psid_r,
+            velocity_body_m_s=(
+                float(self._vel_r[0]) if vel_on[0] else None,
+                float(self._vel_r[1]) if vel_on[1] else None,
+                float(v_ref[2]),
+            ),
+            feedforward=Wrench.from_array(tau_ff),
+            feedback=Wrench.from_array(tau_fb),
+        )
+        return Wrench.from_array(tau)
+
+
+def _quat_conj(q) -> np.ndarray:
+    return np.array([q[0], -q[1], -q[2], -q[3]])
+
+
+def _quat_mul(a, b) -> np.ndarray:
+    """Hamilton product a (x) b, [w, x, y, z]."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ])
+
+
+__all__ = ["Controller", "Gains", "ManualAxes", "Reference", "Setpoint", "Wrench", "axis_capacity"]
