@@ -1,0 +1,210 @@
+"""Azimuth-transient compensation (seed 004): predict each jet's transient force and moment from its
+planned joint motion and take it out of the demanded wrench before allocation.
+
+Pure math plus one small stateful object. `TransientCompensator` holds, per unit, the five
+seed-004 transfer functions of spec 4.1 (F1x, F1y, M1z, F2x, F2z; from
+`onboard.model.transfer_function`) discretised at the control period with
+`scipy.signal.cont2discrete` (zero-order hold: the joint rate is held over a step), and their
+states, carried from step to step. It also carries the spec's `servo_lag` model (first-order lag
+then rate limit) so the rates that drive the filters are the joints' actual rates, not the
+commanded steps: with the servo's 30 ms lag and a 9 Hz F1x resonance the difference matters.
+
+Per unit, over the next step, with thrust T, g = gain_per_newton * T and the rows' step-mean
+outputs (spec 4.1, the same formula as `onboard.model.jets_and_transients`):
+
+    axial change   dT = max(T - g (F1x + F2x), 0) - T      along d
+    lateral        g F1y along e_alpha,  g F2z along e_beta
+    moment         r x (force change) - g M1z about body z
+
+`allocate_compensated` closes the loop with an allocator: allocate, predict the transient of that
+plan, allocate demand - prediction, repeat, so that achieved wrench + transient = demand.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import cont2discrete, tf2ss
+
+from . import model
+from .allocation import Allocation, JetGeometry, jet_frames
+from .vehicle import Vehicle
+
+ROWS = model.TRANSIENT_ROWS  # ("f1x", "f1y", "m1z", "f2x", "f2z")
+
+
+def discretise_row(row: str, coeffs, dt_s: float, method: str = "zoh"):
+    """(Ad, Bd, Cd, Dd) of one seed-004 row (eq. 5 or 6) at sample time dt_s."""
+    num, den = model.transfer_function(row, coeffs)
+    A, B, C, D = tf2ss(num, den)
+    Ad, Bd, Cd, Dd, _ = cont2discrete((A, B, C, D), dt_s, method=method)
+    return Ad, Bd.reshape(-1), Cd.reshape(-1), float(np.asarray(Dd).reshape(-1)[0])
+
+
+def servo_motion(angle, command, dt_s, time_constant, rate_limit, limit):
+    """Joint angle after dt_s and its mean rate, exactly, for spec `servo_lag`:
+
+    a' = clip((clip(a_cmd) - a) / tau, +-rate_limit). While |error| > rate_limit * tau the joint
+    slews at the rate limit; after that the error decays as exp(-t / tau).
+    """
+    a = np.asarray(angle, float)
+    target = np.clip(np.asarray(command, float), -limit, limit)
+    e0 = target - a
+    mag = np.abs(e0)
+    band = rate_limit * time_constant
+    t_slew = np.maximum(mag - band, 0.0) / rate_limit  # time spent at the rate limit
+    slew_only = t_slew >= dt_s
+    rest = np.maximum(dt_s - t_slew, 0.0)
+    e_end = np.where(slew_only, mag - rate_limit * dt_s, np.minimum(mag, band) * np.exp(-rest / time_constant))
+    a_end = target - np.sign(e0) * e_end
+    return a_end, (a_end - a) / dt_s
+
+
+@dataclass(frozen=True)
+class TransientPrediction:
+    """Predicted transient over one control step (step means), per unit and summed.
+
+    `wrench_n` = [X, Y, Z (N), K, M, N (N m)] body FRD; `rows` (k x 5) the filter outputs
+    F1x, F1y, M1z, F2x, F2z (before the gain * T scaling).
+    """
+
+    wrench_n: np.ndarray
+    force_body_n: np.ndarray  # (k, 3)
+    moment_z_nm: np.ndarray  # (k,) reaction moments -g M1z
+    rows: np.ndarray  # (k, 5)
+    alpha_rate_rad_s: np.ndarray
+    beta_rate_rad_s: np.ndarray
+    next_state: np.ndarray  # (k, 5, 4) filter states at the end of the step
+    next_alpha_rad: np.ndarray  # the joints' (estimated) angles at the end of the step
+    next_beta_rad: np.ndarray
+
+
+class TransientCompensator:
+    """Seed-004 transient predictor for every unit, discretised at `dt_s`, state carried over steps.
+
+    `predict(alpha_cmd, beta_cmd, thrust)` (through the servo model) or
+    `predict_rates(alpha_rate, beta_rate, thrust, alpha, beta)` return a `TransientPrediction`
+    without changing anything; `commit(prediction)` advances the filters and joint estimates.
+    With `azimuth_transient` or `servo_lag` off the prediction is zero, as in the spec.
+    """
+
+    def __init__(self, v: Vehicle, dt_s: float, alpha_rad=None, beta_rad=None, method: str = "zoh"):
+        if not (isinstance(dt_s, (int, float)) and np.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s: expected the control period in seconds (> 0), got {dt_s!r}")
+        self.vehicle = v
+        self.dt_s = float(dt_s)
+        self.k = v.n_units
+        self.geo = JetGeometry(v)
+        at = v.effects.azimuth_transient
+        self.active = bool(at.enabled and v.effects.on("servo_lag"))
+        self.gain = at.gain_per_newton if self.active else 0.0
+        mats = [discretise_row(r, getattr(at, r), self.dt_s, method) for r in ROWS]
+        self.Ad = np.stack([m[0] for m in mats])  # (5, 4, 4)
+        self.Bd = np.stack([m[1] for m in mats])  # (5, 4)
+        self.Cd = np.stack([m[2] for m in mats])  # (5, 4)
+        s = v.servo
+        self.servo = (s.time_constant, s.rate_limit, s.angle_limit)
+        self.reset(alpha_rad, beta_rad)
+
+    def reset(self, alpha_rad=None, beta_rad=None) -> None:
+        """Zero the filters (spec 6: transient states start at zero) and set the joint estimates."""
+        self.state = np.zeros((self.k, len(ROWS), 4))
+        self.alpha = np.zeros(self.k) if alpha_rad is None else np.asarray(alpha_rad, float).copy()
+        self.beta = np.zeros(self.k) if beta_rad is None else np.asarray(beta_rad, float).copy()
+
+    # -- prediction -------------------------------------------------------------------------------
+    def predict(self, alpha_cmd, beta_cmd, thrust_n) -> TransientPrediction:
+        """Transient of the next step if the joints are commanded to alpha_cmd, beta_cmd."""
+        tau_s, rate, lim = self.servo
+        a1, ra = servo_motion(self.alpha, alpha_cmd, self.dt_s, tau_s, rate, lim)
+        b1, rb = servo_motion(self.beta, beta_cmd, self.dt_s, tau_s, rate, lim)
+        return self._predict(ra, rb, thrust_n, self.alpha, self.beta, a1, b1)
+
+    def predict_rates(self, alpha_rate, beta_rate, thrust_n, alpha_rad=None, beta_rad=None) -> TransientPrediction:
+        """Transient of the next step for given joint rates held over it (from angles alpha, beta)."""
+        a0 = self.alpha if alpha_rad is None else np.asarray(alpha_rad, float)
+        b0 = self.beta if beta_rad is None else np.asarray(beta_rad, float)
+        ra, rb = np.asarray(alpha_rate, float), np.asarray(beta_rate, float)
+        return self._predict(ra, rb, thrust_n, a0, b0, a0 + ra * self.dt_s, b0 + rb * self.dt_s)
+
+    def _predict(self, ra, rb, thrust_n, a0, b0, a1, b1) -> TransientPrediction:
+        k = self.k
+        if not self.active:
+            ra, rb = np.zeros(k), np.zeros(k)
+        # Drives (spec 4.1): F1x by |alpha'|, F1y and M1z by alpha', F2x by |beta'|, F2z by beta'.
+        u = np.column_stack([np.abs(ra), ra, ra, np.abs(rb), rb])  # (k, 5)
+        z0 = self.state
+        z1 = np.einsum("rij,krj->kri", self.Ad, z0) + self.Bd[None, :, :] * u[:, :, None]
+        # Step-mean output (trapezoid of the ZOH samples at both ends of the step).
+        y = 0.5 * (np.einsum("ri,kri->kr", self.Cd, z0) + np.einsum("ri,kri->kr", self.Cd, z1))
+        T = np.maximum(np.asarray(thrust_n, float), 0.0)
+        g = self.gain * T
+        F = jet_frames(0.5 * (np.asarray(a0, float) + a1), 0.5 * (np.asarray(b0, float) + b1), self.geo.e1)
+        d, ea, eb = F[:, 0], F[:, 1], F[:, 2]
+        d_axial = np.maximum(T - g * (y[:, 0] + y[:, 3]), 0.0) - T
+        force = d_axial[:, None] * d + (g * y[:, 1])[:, None] * ea + (g * y[:, 4])[:, None] * eb
+        mz = -g * y[:, 2]
+        wrench = np.zeros(6)
+        wrench[:3] = force.sum(axis=0)
+        wrench[3:] = np.cross(self.geo.position, force).sum(axis=0)
+        wrench[5] += mz.sum()
+        return TransientPrediction(
+            wrench_n=wrench, force_body_n=force, moment_z_nm=mz, rows=y, alpha_rate_rad_s=np.asarray(ra, float),
+            beta_rate_rad_s=np.asarray(rb, float), next_state=z1, next_alpha_rad=np.asarray(a1, float),
+            next_beta_rad=np.asarray(b1, float),
+        )
+
+    def commit(self, prediction: TransientPrediction) -> None:
+        """Advance to the end of the step the prediction was made for."""
+        self.state = np.array(prediction.next_state)
+        self.alpha = np.array(prediction.next_alpha_rad)
+        self.beta = np.array(prediction.next_beta_rad)
+
+
+def compensate(wrench_demand, prediction: TransientPrediction) -> np.ndarray:
+    """The wrench to ask the jets for so that jets + transient = demand: demand - prediction."""
+    return np.asarray(wrench_demand, float) - prediction.wrench_n
+
+
+@dataclass(frozen=True)
+class CompensatedAllocation:
+    """An allocation made against demand - predicted transient, and that prediction."""
+
+    allocation: Allocation
+    prediction: TransientPrediction
+    wrench_demand: np.ndarray
+    wrench_total: np.ndarray  # achieved by the jets + predicted transient
+    iterations: int
+
+
+def allocate_compensated(allocator, compensator: TransientCompensator, wrench_demand, nu_r=None,
+                         iterations: int = 2, commit: bool = True) -> CompensatedAllocation:
+    """Allocate so that achieved + transient = demand (fixed point over the planned joint motion).
+
+    The transient depends on the joint motion the allocation plans, and the allocation on the
+    corrected demand, so: plan, predict that plan's transient, re-plan against demand - prediction,
+    `iterations` times; then predict for the final plan and (with `commit`) advance both.
+    """
+    tau = np.asarray(wrench_demand, float)
+    alloc = allocator.allocate(tau, nu_r=nu_r, commit=False)
+    for _ in range(max(int(iterations), 0)):
+        pred = compensator.predict(alloc.alpha_rad, alloc.beta_rad, alloc.thrust_n)
+        alloc = allocator.allocate(compensate(tau, pred), nu_r=nu_r, commit=False)
+    pred = compensator.predict(alloc.alpha_rad, alloc.beta_rad, alloc.thrust_n)
+    if commit:
+        allocator.commit(alloc)
+        compensator.commit(pred)
+    return CompensatedAllocation(alloc, pred, tau, np.asarray(alloc.wrench_achieved) + pred.wrench_n, int(iterations))
+
+
+__all__ = [
+    "ROWS",
+    "discretise_row",
+    "servo_motion",
+    "TransientPrediction",
+    "TransientCompensator",
+    "compensate",
+    "CompensatedAllocation",
+    "allocate_compensated",
+]
