@@ -235,7 +235,7 @@ K_RIG = 63.6  # N/m
 def test_spring_free_decay_frequency_in_heave(vehicle):
     v = vehicle.with_effects(surface_proximity=False, wall_proximity=False, current=False)
     m, ma = v.body.mass, v.hydro.added_mass[2]
-    W = m * v.environment.g
+    W = v.body.mass * v.environment.g
     Bf = v.environment.rho * v.environment.g * v.body.volume
     anchor = 0.5
     z_eq = anchor + (W - Bf) / K_RIG  # spring balances the net weight (positive buoyancy: above)
@@ -499,29 +499,41 @@ def test_rk4_error_falls_16x_when_dt_halves(vehicle):
     assert all(10.0 < r < 22.0 for r in ratios), (err, ratios)
 
 
+def hand_mass_matrix(v) -> np.ndarray:
+    """M_RB + M_A about the body origin (Fossen 2011 eq. 3.44): [[m I, -m S(r_g)],
+    [m S(r_g), I_g - m S(r_g)^2]] + diag(added_mass), S(a) b = a x b."""
+    m = v.body.mass
+    gx, gy, gz = v.body.cg
+    S = np.array([[0.0, -gz, gy], [gz, 0.0, -gx], [-gy, gx, 0.0]])
+    M = np.zeros((6, 6))
+    M[:3, :3] = m * np.eye(3)
+    M[:3, 3:] = -m * S
+    M[3:, :3] = m * S
+    M[3:, 3:] = np.diag(v.body.inertia) - m * S @ S
+    return M + np.diag(v.hydro.added_mass)
+
+
 def energy(v, x) -> float:
     """0.5 nu^T (M_RB + M_A) nu + potential of weight at cg and buoyancy at cb (NED z down).
 
-    With cg at the origin M is diagonal: [m + X, m + Y, m + Z, Ixx + K, Iyy + M, Izz + N].
     Potential: -W z_cg + B z_cb, with z_cg = z + (R r_g)_z and z_cb = z + (R r_b)_z.
     """
-    m = v.body.mass
-    Mdiag = np.array([m, m, m, *v.body.inertia]) + np.array(v.hydro.added_mass)
     nu = x[7:13]
     R = model.rotation(x[3:7])
-    W = m * v.environment.g
+    W = v.body.mass * v.environment.g
     B = v.environment.rho * v.environment.g * v.body.volume
     z_cg = x[2] + R[2] @ np.array(v.body.cg)
     z_cb = x[2] + R[2] @ np.array(v.body.cb)
-    return 0.5 * nu @ (Mdiag * nu) - W * z_cg + B * z_cb
+    return 0.5 * nu @ hand_mass_matrix(v) @ nu - W * z_cg + B * z_cb
 
 
-def test_energy_never_increases_in_a_free_coast(vehicle):
+@pytest.mark.parametrize("cg", [(0.0, 0.0, 0.0), (0.01, -0.005, 0.008)])
+def test_energy_never_increases_in_a_free_coast(vehicle, cg):
     """Jets off, neutral buoyancy, deep (s = 1), no wall (its dM/dt is neglected by the spec,
-    so it could add energy) and no current: dE/dt = -nu^T D(nu) nu <= 0."""
+    so it could add energy) and no current: dE/dt = -nu^T D(nu) nu <= 0, since the Coriolis
+    terms do no work. An off-origin CG couples M_RB and the weight's moment into it."""
     v = only_effects(neutrally_buoyant(vehicle), "surface_proximity", "motor_lag", "servo_lag",
-                     "azimuth_transient", "thrust_inflow")
-    assert v.body.cg == (0.0, 0.0, 0.0)
+                     "azimuth_transient", "thrust_inflow").with_values({"body.cg": list(cg)})
     p = model.pack_params(v)
     x = model.initial_state(v, 0.8)
     x[3:7] = model.euler_to_quat(0.2, -0.1, 0.3)
@@ -533,10 +545,60 @@ def test_energy_never_increases_in_a_free_coast(vehicle):
         E.append(energy(v, x))
     E = np.array(E)
     assert np.max(np.diff(E)) <= 1e-10 * abs(E[0] - E[-1])
-    m = v.body.mass
-    Mdiag = np.array([m, m, m, *v.body.inertia]) + np.array(v.hydro.added_mass)
-    kinetic0 = 0.5 * np.sum(Mdiag * np.array([0.3, -0.2, 0.1, 0.5, -0.4, 1.0]) ** 2)
+    nu0 = np.array([0.3, -0.2, 0.1, 0.5, -0.4, 1.0])
+    kinetic0 = 0.5 * nu0 @ hand_mass_matrix(v) @ nu0
     assert E[0] - E[-1] > 0.9 * kinetic0  # the coast dissipated (nearly) all the motion
+
+
+def test_current_drags_a_vehicle_at_rest(vehicle):
+    """At rest in a current c along NED x (level, yaw 0): nu_r = -c, so the damping pushes
+    downstream with (Dl + Dq c) c, and u' = (Dl + Dq c) c / (m + X_udot) (spec 2)."""
+    c = 0.2
+    v = only_effects(neutrally_buoyant(vehicle), "current").with_values(
+        {"environment.current": [c, 0.0, 0.0]}
+    )
+    x = model.initial_state(v, 0.5)
+    xdot = np.zeros_like(x)
+    model.derivative(x, command(), model.pack_params(v), xdot)
+    Dl, Dq = v.hydro.linear_damping[0], v.hydro.quadratic_damping[0]
+    u_dot = (Dl + Dq * c) * c / (v.body.mass + v.hydro.added_mass[0])
+    np.testing.assert_allclose(xdot[7:13], [u_dot, 0, 0, 0, 0, 0], atol=1e-12)
+    # with the current off the same state stays at rest
+    model.derivative(x, command(), model.pack_params(v.with_effects(current=False)), xdot)
+    np.testing.assert_allclose(xdot[7:13], 0.0, atol=1e-12)
+
+
+def test_vehicle_drifts_with_the_current(vehicle):
+    """Jets off, neutral: the water carries it until nu_r = 0, i.e. its NED velocity = current."""
+    c = np.array([0.15, -0.1, 0.0])
+    v = only_effects(neutrally_buoyant(vehicle), "current").with_values({"environment.current": list(c)})
+    x0 = model.initial_state(v, 0.5)
+    x0[3:7] = model.euler_to_quat(0.0, 0.0, 0.7)  # yawed: the body sees the current rotated
+    x = model.rk4_steps(x0, command(), model.pack_params(v), 0.005, 8000)  # 40 s
+    v_ned = model.rotation(x[3:7]) @ x[7:10]
+    np.testing.assert_allclose(v_ned, c, atol=0.005 * np.linalg.norm(c))
+    np.testing.assert_allclose(x[10:13], 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("cg", [(0.0, 0.0, 0.0), (0.01, -0.005, 0.008)])
+def test_energy_is_conserved_without_damping(vehicle, cg):
+    """Damping set to zero: the Coriolis/centripetal terms (Kirchhoff form of M_RB + M_A) and the
+    restoring terms are conservative, so E stays constant (to RK4 error). Sharper than the decay
+    test: an M_RB or C(nu) inconsistent with the hand-written M breaks it at the 10 % level."""
+    v = only_effects(neutrally_buoyant(vehicle), "surface_proximity").with_values({
+        "body.cg": list(cg), "hydro.linear_damping": [0.0] * 6, "hydro.quadratic_damping": [0.0] * 6,
+    })
+    p = model.pack_params(v)
+    x = model.initial_state(v, 0.8)
+    x[3:7] = model.euler_to_quat(0.2, -0.1, 0.3)
+    x[7:13] = [0.3, -0.2, 0.1, 0.5, -0.4, 1.0]
+    E0 = energy(v, x)
+    worst = 0.0
+    for _ in range(750):
+        x = model.rk4_steps(x, command(), p, 0.002, 10)
+        worst = max(worst, abs(energy(v, x) - E0))
+    nu0 = np.array([0.3, -0.2, 0.1, 0.5, -0.4, 1.0])
+    assert worst < 1e-8 * (0.5 * nu0 @ hand_mass_matrix(v) @ nu0)
 
 
 def test_quaternion_stays_unit_over_a_long_manoeuvre(vehicle):
