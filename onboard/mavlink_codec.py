@@ -256,4 +256,10 @@ def _finite_all(message: str, fields, values) -> tuple:
     values = tuple(values)
     if len(values) != len(fields):
         raise CodecError(f"{message}: expected {len(fields)} values ({', '.join(fields)}), got {len(values)}")
-    return tuple(_finite(message, f, v) for f, v in zip(fields, values))
+    try:  # fast path (this runs for every sample): all finite numbers
+        out = tuple(map(float, values))
+        if all(map(math.isfinite, out)):
+            return out
+    except (TypeError, ValueError):
+        pass
+    return tuple(_finite(message, f, v) for f, v in zip(fields, values))  # names the bad field

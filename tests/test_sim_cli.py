@@ -356,3 +356,15 @@ def test_bad_options_and_files(tmp_path):
         assert rc == 2, argv
         assert phrase in err, (argv, err)
         assert "Traceback" not in err
+
+
+def test_progress_goes_to_stderr(tmp_path, monkeypatch):
+    monkeypatch.setattr(sim, "PROGRESS_AFTER_S", 0.0)  # report after every chunk instead of every 2 s
+    path = tmp_path / "c.csv"
+    path.write_text(csv_text([(0.0, [1500] * 12), (0.5, [1500] * 12)]))
+    rc, out, err = run_cli("--commands", path, "--out", tmp_path / "r.tlog")
+    assert rc == 0
+    lines = [ln for ln in err.splitlines() if ln.startswith("  t = ")]
+    assert lines and lines[-1].startswith("  t = 0.5 / 0.5 s (100 %)")
+    assert not any(ln.startswith("  t = ") for ln in out.splitlines())
+    assert "0.500 s of vehicle time" in out
