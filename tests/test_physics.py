@@ -476,6 +476,76 @@ def test_azimuth_step_yaw_moment_follows_minus_gain_t_m1z(vehicle):
     assert dtau[first] < 0
 
 
+def spec_e_alpha(e1, alpha):
+    """e_alpha = -sin(a) e1 + cos(a) e2 (spec 4.1)."""
+    e1 = np.asarray(e1, float)
+    e2 = np.cross([0.0, 0.0, 1.0], e1)
+    return -math.sin(alpha) * e1 + math.cos(alpha) * e2
+
+
+def spec_e_beta(e1, alpha, beta):
+    """e_beta = -sin b cos a e1 - sin b sin a e2 - cos b e3 (spec 4.1)."""
+    e1 = np.asarray(e1, float)
+    e2 = np.cross([0.0, 0.0, 1.0], e1)
+    sb, cb = math.sin(beta), math.cos(beta)
+    return -sb * math.cos(alpha) * e1 - sb * math.sin(alpha) * e2 - cb * np.array([0.0, 0.0, 1.0])
+
+
+@pytest.mark.parametrize("row", ["f1x", "f1y", "f2x", "f2z"])
+def test_joint_step_transient_force_acts_along_its_spec_direction(vehicle, row):
+    """Only `row` kept; unit 1 at full speed; a joint step (azimuth for f1*, elevation for f2*).
+
+    The change of the wrench when the transient is switched on equals, per spec 4.1:
+    f1x, f2x: -g T F[|rate|] d (axial loss); f1y: g T F1y[alpha'] e_alpha; f2z: g T F2z[beta']
+    e_beta; each applied at r_1 (moment r x F). The wrench is read as M nu' with the hand-written
+    mass matrix; F[.] is scipy's simulation of the table's transfer function.
+    """
+    at = vehicle.effects.azimuth_transient
+    v = only_effects(vehicle, "servo_lag", "azimuth_transient").with_values({
+        f"effects.azimuth_transient.{r}": [0.0, *getattr(at, r)[1:]]
+        for r in model.TRANSIENT_ROWS if r != row
+    })
+    p_on = model.pack_params(v)
+    p_off = p_on.copy()
+    p_off[model.ON_TRANSIENT] = 0.0
+    lay = model.StateLayout(4)
+    n, unit = v.thruster.n_max, 1
+    azimuth = row.startswith("f1")
+    start = command(alpha=(0, 0.3, 0, 0), beta=(0, 0.2, 0, 0))
+    u = command(n=(0, n, 0, 0), alpha=(0, 0.3 + 0.4 * azimuth, 0, 0), beta=(0, 0.2 + 0.4 * (not azimuth), 0, 0))
+    x = model.initial_state(v, 0.5, start)
+    M = hand_mass_matrix(v)
+    dt, steps = 2e-4, 2000
+    t = np.arange(steps) * dt
+    rate, ang, dtau = np.empty(steps), np.empty((steps, 2)), np.empty((steps, 6))
+    for i in range(steps):
+        x_on, x_off = np.zeros_like(x), np.zeros_like(x)
+        model.derivative(x, u, p_on, x_on)
+        model.derivative(x, u, p_off, x_off)
+        rate[i] = (x_on[lay.alpha] if azimuth else x_on[lay.beta])[unit]
+        ang[i] = x[lay.alpha][unit], x[lay.beta][unit]
+        dtau[i] = M @ (x_on[7:13] - x_off[7:13])
+        x = model.rk4_step(x, u, p_on, dt)
+    assert abs(rate).max() == pytest.approx(v.servo.rate_limit)
+    drive = np.abs(rate) if row.endswith("x") else rate
+    _, y, _ = signal.lsim(signal.TransferFunction(*model.transfer_function(row, getattr(at, row))), drive, t)
+    e1, r = v.units[unit].neutral, np.array(v.units[unit].position)
+    T = bollard(v, n)
+    expected = np.empty((steps, 6))
+    for i, (a, b) in enumerate(ang):
+        if row in ("f1x", "f2x"):
+            direction = -spec_direction(e1, a, b)
+        elif row == "f1y":
+            direction = spec_e_alpha(e1, a)
+        else:
+            direction = spec_e_beta(e1, a, b)
+        F = at.gain_per_newton * T * y[i] * direction
+        expected[i] = [*F, *np.cross(r, F)]
+    scale = np.abs(expected).max()
+    assert scale > 1e-3  # newtons: a real effect
+    assert np.abs(dtau - expected).max() < 0.02 * scale
+
+
 # ------------------------------------------------------------------------------------------------
 # Integration: RK4 order, energy, quaternion
 
