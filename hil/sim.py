@@ -32,6 +32,7 @@ from onboard.vehicle import Vehicle, VehicleFileError, load_vehicle
 from .plant import Plant
 from .tlog import FIXED_EPOCH_US, TlogWriter
 
+DEMO_COMMANDS = Path(__file__).resolve().parent.parent / "onboard" / "data" / "demo_commands.csv"
 PWM_MIN_US = 800
 PWM_MAX_US = 2200
 ACTUATOR_HOLD_PERIOD_S = 0.1  # SERVO_OUTPUT_RAW at least at 10 Hz while a row is held
@@ -238,7 +239,8 @@ def configure(parser) -> None:
     parser.add_argument("--vehicle", default=None, metavar="V.toml",
                         help="vehicle file (default: the packaged reference vehicle asr4)")
     parser.add_argument("--commands", required=True, metavar="CMDS.csv",
-                        help="header t,pwm1,...,pwm12: time (s) and PWM (us), each row held until the next")
+                        help="header t,pwm1,...,pwm12: time (s) and PWM (us), each row held until the next; "
+                        f"example: {DEMO_COMMANDS}")
     parser.add_argument("--out", required=True, metavar="REC.tlog", help="recording to write")
     parser.add_argument("--truth", default=None, metavar="TRUTH.csv",
                         help="also write the true state at the IMU rate (t,x,y,z,roll,pitch,yaw,u,v,w,p,q,r)")

@@ -22,7 +22,7 @@ from hil.tlog import FIXED_EPOCH_US
 from onboard import mavlink_codec as codec
 from onboard.vehicle import DEFAULT_VEHICLE, load_vehicle
 
-DEMO = Path(sim.__file__).resolve().parent.parent / "onboard" / "data" / "demo_commands.csv"
+DEMO = sim.DEMO_COMMANDS
 HEADER = "t," + ",".join(f"pwm{c}" for c in range(1, 13))
 
 # Distinct PWM on every channel, so a swapped channel shows. Row times are deliberately not all
