@@ -368,3 +368,20 @@ def test_progress_goes_to_stderr(tmp_path, monkeypatch):
     assert lines and lines[-1].startswith("  t = 0.5 / 0.5 s (100 %)")
     assert not any(ln.startswith("  t = ") for ln in out.splitlines())
     assert "0.500 s of vehicle time" in out
+
+
+def test_tlog_writer_layout_counts_and_order(tmp_path):
+    from hil.tlog import TlogWriter
+
+    path = tmp_path / "w.tlog"
+    with TlogWriter(path) as w:
+        w.write(codec.heartbeat(), 0x0102030405060708)
+        w.write(codec.heartbeat(), 0x0102030405060708 + 1)
+        with pytest.raises(ValueError, match="must not go back"):
+            w.write(codec.heartbeat(), 5)
+    data = path.read_bytes()
+    pkt = codec.encode(codec.make_mavlink(), codec.heartbeat())  # seq 0, like the writer's first
+    assert data[:8] == bytes([1, 2, 3, 4, 5, 6, 7, 8])  # big-endian microseconds
+    assert data[8:8 + len(pkt)] == pkt
+    assert len(data) == 2 * (8 + len(pkt)) == w.bytes_written
+    assert w.counts == {"HEARTBEAT": 2}
