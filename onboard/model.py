@@ -330,16 +330,21 @@ def mass_matrix(p, s_added, wall):
     for i in range(3):
         M[i, i] = m
     # -m S(r_g) upper right, m S(r_g) lower left, S(a) b = a x b
-    S = np.array([[0.0, -zg, yg], [zg, 0.0, -xg], [-yg, xg, 0.0]])
+    S = np.empty((3, 3))  # filled in place: a nested-list literal allocates a list per row
+    S[0, 0], S[0, 1], S[0, 2] = 0.0, -zg, yg
+    S[1, 0], S[1, 1], S[1, 2] = zg, 0.0, -xg
+    S[2, 0], S[2, 1], S[2, 2] = -yg, xg, 0.0
     for i in range(3):
         for j in range(3):
             M[i, 3 + j] = -m * S[i, j]
             M[3 + i, j] = m * S[i, j]
-    # I_b = I_g - m S(r_g)^2 (parallel axes)
-    S2 = S @ S
+    # I_b = I_g - m S(r_g)^2 (parallel axes); 3x3 product in loops (a BLAS call costs more)
     for i in range(3):
         for j in range(3):
-            M[3 + i, 3 + j] = -m * S2[i, j]
+            s2 = 0.0
+            for r in range(3):
+                s2 += S[i, r] * S[r, j]
+            M[3 + i, 3 + j] = -m * s2
         M[3 + i, 3 + i] += p[P_INERTIA + i]
     for i in range(6):
         M[i, i] += s_added * p[P_MA + i] * (wall if i == 2 else 1.0)
@@ -352,7 +357,10 @@ def coriolis_times_nu(M, nu_r):
 
     With momentum h = M nu_r = [h1, h2]: C nu = [w x h1, w x h2 + v x h1].
     """
-    h = M @ nu_r
+    h = np.zeros(6)  # h = M nu_r, in loops (a BLAS call costs more than the product)
+    for i in range(6):
+        for j in range(6):
+            h[i] += M[i, j] * nu_r[j]
     v0, v1, v2, w0, w1, w2 = nu_r[0], nu_r[1], nu_r[2], nu_r[3], nu_r[4], nu_r[5]
     out = np.empty(6)
     out[0], out[1], out[2] = cross(w0, w1, w2, h[0], h[1], h[2])
@@ -543,16 +551,27 @@ def project(x, u, p):
 @njit(cache=True)
 def rk4_step(x, u, p, dt):
     """One classical Runge-Kutta step with u held over it, then `project` (spec 6)."""
+    # One buffer for the stages and the stage state instead of a temporary array per operation;
+    # each element is computed with the same operations in the same order as the array form
+    # x + 0.5 dt k1, ..., x + dt/6 (k1 + 2 k2 + 2 k3 + k4), so the result is unchanged.
     n = x.shape[0]
-    k1 = np.empty(n)
-    k2 = np.empty(n)
-    k3 = np.empty(n)
-    k4 = np.empty(n)
+    buf = np.empty((5, n))
+    k1, k2, k3, k4, xs = buf[0], buf[1], buf[2], buf[3], buf[4]
+    h = 0.5 * dt
     derivative(x, u, p, k1)
-    derivative(x + 0.5 * dt * k1, u, p, k2)
-    derivative(x + 0.5 * dt * k2, u, p, k3)
-    derivative(x + dt * k3, u, p, k4)
-    out = x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    for i in range(n):
+        xs[i] = x[i] + h * k1[i]
+    derivative(xs, u, p, k2)
+    for i in range(n):
+        xs[i] = x[i] + h * k2[i]
+    derivative(xs, u, p, k3)
+    for i in range(n):
+        xs[i] = x[i] + dt * k3[i]
+    derivative(xs, u, p, k4)
+    out = np.empty(n)
+    c = dt / 6.0
+    for i in range(n):
+        out[i] = x[i] + c * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
     project(out, u, p)
     return out
 
