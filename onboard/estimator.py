@@ -6,8 +6,12 @@ jets, and the accelerometer is fused as the specific force that model predicts
 (f = v' + w x v - R^T [0, 0, g], spec 5): the accelerometer then tells about attitude (through
 gravity) AND about velocity (through the damping and thrust-inflow terms of v').
 
-Filter state (13, additive, `X_*` offsets below):
-    [roll, pitch, yaw (rad, ZYX), p, q, r (rad/s), b_gx, b_gy, b_gz (rad/s), u, v, w (m/s), depth (m)]
+Filter state (16, additive, `X_*` offsets below):
+    [roll, pitch, yaw (rad, ZYX), p, q, r (rad/s), b_gx, b_gy, b_gz (rad/s), u, v, w (m/s),
+     depth (m), d_x, d_y, d_z (m/s^2)]
+d is the unmodelled body acceleration, a first-order Gauss-Markov process (v' = f(x, u) + d):
+the accelerometer measures it directly (f_spec = v' + w x v - R^T g), so the velocity integrates
+what the model misses instead of random-walking; with a perfect model d stays near zero.
 Euler angles rather than a quaternion keep the filter additive, as filterpy's EKF assumes; the
 one wrap (yaw) is handled by the innovation residual and by re-wrapping after each step, and the
 ZYX singularity at pitch +-90 deg is out of reach of this bottom-heavy vehicle (cb 2 cm above
@@ -50,8 +54,8 @@ from .sensors import AttitudeSample, ImuSample
 from .vehicle import Vehicle
 
 # Filter state offsets
-X_EULER, X_RATES, X_BIAS, X_VEL, X_DEPTH = 0, 3, 6, 9, 12
-N_X = 13
+X_EULER, X_RATES, X_BIAS, X_VEL, X_DEPTH, X_DIST = 0, 3, 6, 9, 12, 13
+N_X = 16
 STREAMS = ("gyro", "accel", "depth", "attitude")
 _GYRO, _ACCEL, _DEPTH, _ATT = range(4)
 
@@ -96,7 +100,8 @@ class EstimatedState:
     velocity_body_m_s: tuple  # u, v, w
     depth_m: float  # below the free surface (NED z - surface_depth)
     depth_rate_m_s: float  # NED z' = R[2, :] v
-    covariance_diag: tuple  # 13 variances in the X_* layout
+    accel_disturbance_m_s2: tuple  # d: body acceleration the model does not explain
+    covariance_diag: tuple  # 16 variances in the X_* layout
     health: EstimatorHealth = field(default_factory=EstimatorHealth)
 
     @property
@@ -115,7 +120,9 @@ class EstimatorTuning:
     q_attitude_rad_sqrt_s: float = 2e-3  # kinematics are exact; room for linearisation error
     q_rates_rad_s2_sqrt_hz: float = 0.3  # unmodelled moment / inertia
     q_bias_rad_s_sqrt_s: float = 2e-4  # gyro bias random walk
-    q_velocity_m_s2_sqrt_hz: float = 0.05  # unmodelled force / mass
+    q_velocity_m_s2_sqrt_hz: float = 0.005  # residual, d carries the unmodelled force
+    disturbance_sigma_m_s2: float = 0.2  # steady-state std of d (Gauss-Markov)
+    disturbance_time_s: float = 2.0  # correlation time of d
     q_depth_m_sqrt_s: float = 2e-3
     accel_model_sigma_m_s2: float = 0.08  # model error in predicted specific force, added to R
     init_attitude_sigma_rad: float = 0.4
@@ -124,10 +131,11 @@ class EstimatorTuning:
     init_bias_sigma_rad_s: float = 0.05
     init_velocity_sigma_m_s: float = 0.2
     init_depth_sigma_m: float = 1.0
+    init_disturbance_sigma_m_s2: float = 0.2
     gate_probability: float = 0.9999  # chi-square gate P(accept | consistent filter)
     max_consecutive_rejections: int = 50  # gated rejections in a row of one stream -> diverged
     nis_window: int = 100  # samples in the NIS moving average
-    nis_limit: float = 8.0  # windowed NIS / dim above this -> diverged (expected 1)
+    nis_limit: float = 4.0  # windowed NIS / dim of accepted samples above this -> diverged (expected 1)
     max_sigma_attitude_rad: float = 0.8  # roll/pitch std above this -> diverged
     max_sigma_velocity_m_s: float = 2.0
     max_sigma_depth_m: float = 3.0
@@ -157,11 +165,11 @@ def _embed(xr, full, surface):
 
 
 @njit(cache=True)
-def _reduced_rates(xr, full, u, p, xdot, out, fspec):
+def _reduced_rates(xr, full, u, p, xdot, out, fspec, tau_d):
     """x_r' of the filter state and the specific force at xr; `full` is overwritten by the embedding.
 
     Euler rates: [phi', theta', psi'] = T(phi, theta) w (Fossen 2011 eq. 2.29);
-    w' and v' from the vehicle model; bias' = 0; depth' = z' = R[2, :] v.
+    w' and v' from the vehicle model, v' + d; bias' = 0; depth' = z' = R[2, :] v; d' = -d / tau_d.
     """
     _embed(xr, full, p[P_SURF])
     derivative(full, u, p, xdot)
@@ -177,16 +185,17 @@ def _reduced_rates(xr, full, u, p, xdot, out, fspec):
     for i in range(3):
         out[3 + i] = xdot[10 + i]  # w' (model)
         out[6 + i] = 0.0  # b_g' = 0 (random walk in Q)
-        out[9 + i] = xdot[7 + i]  # v' (model)
+        out[9 + i] = xdot[7 + i] + xr[13 + i]  # v' = f_v(x, u) + d
+        out[13 + i] = -xr[13 + i] / tau_d  # d' = -d / tau_d (+ white noise)
     out[12] = xdot[2]  # z' = R[2, :] v
     f = specific_force(full, xdot, p)  # f = v' + w x v - R^T [0, 0, g] (spec 5)
     for i in range(3):
-        fspec[i] = f[i]
+        fspec[i] = f[i] + xr[13 + i]
 
 
 @njit(cache=True)
-def _linearise(xr, full, u, p):
-    """Forward-difference A = df/dx_r (13x13) and H_acc = d f_spec / d x_r (3x13) at xr.
+def _linearise(xr, full, u, p, tau_d):
+    """Forward-difference A = df/dx_r (16x16) and H_acc = d f_spec / d x_r (3x16) at xr.
 
     Returns (A, H_acc, f_spec(xr)); `full` keeps the actuator/transient part, its rigid-body
     part is restored from xr on return.
@@ -195,22 +204,28 @@ def _linearise(xr, full, u, p):
     xdot = np.zeros(full.shape[0])
     f0 = np.empty(n)
     s0 = np.empty(3)
-    _reduced_rates(xr, full, u, p, xdot, f0, s0)
+    _reduced_rates(xr, full, u, p, xdot, f0, s0, tau_d)
     A = np.empty((n, n))
     H = np.empty((3, n))
     f1 = np.empty(n)
     s1 = np.empty(3)
     xp = xr.copy()
     for j in range(n):
-        if 6 <= j < 9:  # the gyro bias enters neither the model nor the accelerometer
+        if 6 <= j < 9 or j >= 13:
+            # analytic columns: the gyro bias enters neither model nor accelerometer; d enters
+            # v' and f_spec with unit gain and decays at 1 / tau_d
             for i in range(n):
                 A[i, j] = 0.0
             for i in range(3):
                 H[i, j] = 0.0
+            if j >= 13:
+                A[j - 4, j] = 1.0
+                A[j, j] = -1.0 / tau_d
+                H[j - 13, j] = 1.0
             continue
         h = 1e-6 * max(1.0, abs(xr[j]))
         xp[j] = xr[j] + h
-        _reduced_rates(xp, full, u, p, xdot, f1, s1)
+        _reduced_rates(xp, full, u, p, xdot, f1, s1, tau_d)
         for i in range(n):
             A[i, j] = (f1[i] - f0[i]) / h
         for i in range(3):
@@ -221,12 +236,12 @@ def _linearise(xr, full, u, p):
 
 
 @njit(cache=True)
-def _propagate(xr, full, u, p, dt):
+def _propagate(xr, full, u, p, dt, tau_d):
     """Mean by RK4 of the full model; F = I + A dt + (A dt)^2 / 2 at the prior mean.
 
     Also returns H_acc, the accelerometer Jacobian at the prior mean, for the next IMU update.
     """
-    A, H_acc, _ = _linearise(xr, full, u, p)
+    A, H_acc, _ = _linearise(xr, full, u, p, tau_d)
     nxt = rk4_step(full, u, p, dt)
     xn = xr.copy()
     roll, pitch, yaw = quat_to_euler(nxt[3:7])
@@ -235,6 +250,12 @@ def _propagate(xr, full, u, p, dt):
         xn[3 + i] = nxt[10 + i]
         xn[9 + i] = nxt[7 + i]
     xn[12] = nxt[2] - p[P_SURF]
+    # d enters v' additively: v += d dt (first order), d decays exactly over dt
+    decay = math.exp(-dt / tau_d)
+    for i in range(3):
+        xn[9 + i] += xr[13 + i] * dt
+        xn[13 + i] = xr[13 + i] * decay
+        nxt[7 + i] = xn[9 + i]
     Ad = A * dt
     F = np.eye(xr.shape[0]) + Ad + 0.5 * (Ad @ Ad)
     return xn, nxt, F, H_acc
@@ -271,11 +292,14 @@ def _mahalanobis2(P, H, R, y):
 
 @njit(cache=True)
 def _specific_force_at(xr, full, u, p):
-    """h_acc(x) = f_spec = v' + w x v - R^T [0, 0, g] of the model at the filter mean (spec 5)."""
+    """h_acc(x) = f_spec = v' + w x v - R^T [0, 0, g] (spec 5), v' = f_v(x, u) + d, at the mean."""
     xdot = np.zeros(full.shape[0])
     _embed(xr, full, p[P_SURF])
     derivative(full, u, p, xdot)
-    return specific_force(full, xdot, p)
+    f = specific_force(full, xdot, p)
+    for i in range(3):
+        f[i] += xr[13 + i]
+    return f
 
 
 def _block_diag(blocks) -> np.ndarray:
@@ -328,7 +352,10 @@ class Estimator:
         self._q = np.array(
             [t.q_attitude_rad_sqrt_s] * 3 + [t.q_rates_rad_s2_sqrt_hz] * 3
             + [t.q_bias_rad_s_sqrt_s] * 3 + [t.q_velocity_m_s2_sqrt_hz] * 3 + [t.q_depth_m_sqrt_s]
+            # Gauss-Markov: q_d^2 = 2 sigma_d^2 / tau_d keeps the steady-state std at sigma_d
+            + [t.disturbance_sigma_m_s2 * math.sqrt(2.0 / t.disturbance_time_s)] * 3
         ) ** 2
+        self._tau_d = float(t.disturbance_time_s)
         self._gate = {m: float(chi2.ppf(t.gate_probability, m)) for m in (1, 3)}
         self._H_gyro = np.zeros((3, N_X))
         self._H_gyro[:, X_RATES:X_RATES + 3] = np.eye(3)  # h = w + b_g
@@ -356,12 +383,13 @@ class Estimator:
         ekf.P = np.diag(np.array(
             [t.init_attitude_sigma_rad] * 2 + [t.init_yaw_sigma_rad] + [t.init_rates_sigma_rad_s] * 3
             + [t.init_bias_sigma_rad_s] * 3 + [t.init_velocity_sigma_m_s] * 3 + [t.init_depth_sigma_m]
+            + [t.init_disturbance_sigma_m_s2] * 3
         ) ** 2)
         self._ekf = ekf
         self._full = model.initial_state(self.vehicle, d0)
         _embed(x, self._full, self.params[P_SURF])
         self._command = np.zeros(3 * self.vehicle.n_units)
-        self._H_acc = _linearise(x, self._full, self._command, self.params)[1]
+        self._H_acc = _linearise(x, self._full, self._command, self.params, self._tau_d)[1]
         self.time_s = 0.0
         self._accepted = [0, 0, 0, 0]
         self._rej_nonfinite = [0, 0, 0, 0]
@@ -391,7 +419,7 @@ class Estimator:
             return
         self._command = u.copy()
         ekf = self._ekf
-        xn, full, F, self._H_acc = _propagate(ekf.x, self._full, u, self.params, dt)
+        xn, full, F, self._H_acc = _propagate(ekf.x, self._full, u, self.params, dt, self._tau_d)
         xn[X_EULER + 2] = _wrap(xn[X_EULER + 2])
         self._full = full
         ekf.Q = np.diag(self._q * dt)  # Q = diag(q^2) dt
@@ -423,7 +451,12 @@ class Estimator:
             self._rej_nonfinite[_ACCEL] += 1
         else:
             hx = _specific_force_at(self._ekf.x, self._full, self._command, self.params)
-            parts.append((_ACCEL, a, self._H_acc, hx, self._R_accel))
+            # Second-order term of gravity's projection, g (1 - cos d) ~ g d^2 / 2 for an
+            # attitude error d: large while the attitude is uncertain, so a big initial error is
+            # not mistaken for an outlier by the gate (second-order EKF, Gelb 1974 sec. 6.1).
+            P = self._ekf.P
+            lin = 0.5 * self.vehicle.environment.g * (P[0, 0] + P[1, 1])
+            parts.append((_ACCEL, a, self._H_acc, hx, self._R_accel + np.eye(3) * lin * lin))
         self._update(parts)
 
     def update_depth(self, depth_m: float) -> None:
@@ -467,8 +500,7 @@ class Estimator:
             m = len(z)
             if not math.isfinite(d2) or d2 > self._gate[m]:
                 self._rej_gated[k] += 1
-                self._consecutive[k] += 1
-                self._nis_push(k, min(d2, 1e6) / m if math.isfinite(d2) else 1e6)
+                self._consecutive[k] += 1  # (the NIS average sees accepted samples only)
             else:
                 keep.append((k, z, H, hx, R, y))
                 self._accepted[k] += 1
@@ -557,6 +589,7 @@ def _make_state(time_s: float, x, cov_diag, health: EstimatorHealth) -> Estimate
         velocity_body_m_s=tuple(float(c) for c in x[9:12]),
         depth_m=float(x[12]),
         depth_rate_m_s=float(zdot),
+        accel_disturbance_m_s2=tuple(float(c) for c in x[13:16]),
         covariance_diag=tuple(float(c) for c in cov_diag),
         health=health,
     )
