@@ -133,8 +133,9 @@ def jet_frames(alpha, beta, e1):
 def frame_angles(f, e1, alpha_default, beta_default):
     """(alpha, beta) of the direction of each row of f: the inverse of d(alpha, beta).
 
-    With u = f / |f|: beta = -asin(u . e3), alpha = atan2(u . e2, u . e1); a zero force keeps the
-    default angles.
+    With c_j = f . e_j and nu = |e1| (1 up to the file's rounding): f . e1 = |f| cos b cos a nu^2,
+    f . e2 = |f| cos b sin a nu^2, f . e3 = -|f| sin b, so alpha = atan2(c2, c1) and
+    beta = atan2(-c3, sqrt(c1^2 + c2^2) / nu^2). A zero force keeps the default angles.
     """
     k = f.shape[0]
     a = np.empty(k)
@@ -144,11 +145,11 @@ def frame_angles(f, e1, alpha_default, beta_default):
         if m <= 1e-9:
             a[i], b[i] = alpha_default[i], beta_default[i]
             continue
-        c1 = (f[i, 0] * e1[i, 0] + f[i, 1] * e1[i, 1]) / m
-        c2 = (-f[i, 0] * e1[i, 1] + f[i, 1] * e1[i, 0]) / m
-        c3 = min(max(f[i, 2] / m, -1.0), 1.0)
+        nu2 = e1[i, 0] ** 2 + e1[i, 1] ** 2
+        c1 = f[i, 0] * e1[i, 0] + f[i, 1] * e1[i, 1]
+        c2 = -f[i, 0] * e1[i, 1] + f[i, 1] * e1[i, 0]
         a[i] = math.atan2(c2, c1)
-        b[i] = -math.asin(c3)
+        b[i] = math.atan2(-f[i, 2], math.sqrt(c1 * c1 + c2 * c2) / nu2)
     return a, b
 
 
