@@ -202,3 +202,25 @@ def test_monte_carlo_bad_input_names_the_key_or_draw(vehicle):
     # sigma 3: some of 50 draws of 1 + 3 z are negative, which a vehicle file rejects
     with pytest.raises(VehicleFileError, match=r"monte_carlo draw \d+ \(seed 0\): body.mass"):
         batch.monte_carlo(vehicle, {"body.mass": 3.0}, 50, seed=0)
+
+
+def test_benchmark_baseline_is_the_same_model_interpreted(vehicle):
+    """bench/bench_plant.py's baseline runs model.py's own source without numba, and agrees."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "bench_plant.py"
+    spec = importlib.util.spec_from_file_location("bench_plant", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    py = bench.interpreted_model()
+    assert not hasattr(py.derivative, "py_func") and not hasattr(py.jet_frame, "py_func")
+    assert hasattr(model.derivative, "py_func")  # the real module is still the compiled one
+    v, u, x0 = bench.setup()
+    p = model.pack_params(v)
+    x_py, x_c = x0.copy(), x0.copy()
+    for _ in range(20):
+        x_py = py.rk4_step(x_py, u, p, 0.001)
+        x_c = model.rk4_step(x_c, u, p, 0.001)
+    assert np.abs(x_c[model.StateLayout(4).alpha] - x0[model.StateLayout(4).alpha]).max() > 0.05  # joints slew
+    np.testing.assert_allclose(x_py, x_c, rtol=0, atol=1e-12)
