@@ -149,8 +149,8 @@ def _check(states, commands, params, dt_s, n_steps):
             f"params: expected shape ({n_veh}, {n_par}) (one pack_params row per vehicle, {k} units), "
             f"got {p.shape}"
         )
-    c = np.asarray(commands, dtype=float) if not isinstance(commands, np.ndarray) else commands
     nu = 3 * k
+    c = _float_array("commands", commands, None, f"({n_veh}, {nu}) or (S, {n_veh}, {nu})")
     if c.ndim == 2:
         c = c[None]
     if c.ndim != 3 or c.shape[1:] != (n_veh, nu) or c.shape[0] < 1:
@@ -158,7 +158,6 @@ def _check(states, commands, params, dt_s, n_steps):
             f"commands: expected shape ({n_veh}, {nu}) held, or (S, {n_veh}, {nu}) a schedule of S rows "
             f"({n_veh} vehicles, {k} units), got {np.shape(commands)}"
         )
-    c = _float_array("commands", c, 3, "(S, N, nu)")
     if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 0:
         raise ValueError(f"n_steps: expected a whole number >= 0, got {n_steps!r}")
     n = int(n_steps)
@@ -178,12 +177,12 @@ def _check(states, commands, params, dt_s, n_steps):
     return x, c, p, dt, hold, n
 
 
-def _float_array(name: str, value, ndim: int, shape_text: str) -> np.ndarray:
+def _float_array(name: str, value, ndim: int | None, shape_text: str) -> np.ndarray:
     try:
         a = np.ascontiguousarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: expected a float array {shape_text}, got {type(value).__name__}: {exc}") from None
-    if a.ndim != ndim:
+    if ndim is not None and a.ndim != ndim:
         raise ValueError(f"{name}: expected a {ndim}-D array {shape_text}, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])

@@ -146,6 +146,7 @@ def test_monte_carlo_spread_matches_sigma(vehicle):
         ("states_1d", r"states: expected a 2-D array \(N, nx\)"),
         ("params_rows", r"params: expected shape \(6, 128\)"),
         ("commands_width", r"commands: expected shape \(6, 12\) held, or \(S, 6, 12\)"),
+        ("commands_text", r"commands: expected a float array \(6, 12\) or \(S, 6, 12\), got list"),
         ("schedule_split", r"commands: a schedule of 7 rows must divide n_steps = 20"),
         ("nan_state", r"states: every value must be finite; states\[2, 7\] is nan"),
         ("dt", r"dt_s: expected a finite step > 0 s"),
@@ -167,6 +168,8 @@ def test_bad_input_gives_a_clear_message(fleet, what, message):
         args["params"] = params[:3]
     elif what == "commands_width":
         args["commands"] = commands[:, :8]
+    elif what == "commands_text":
+        args["commands"] = [["fast"] * 12] * N
     elif what == "schedule_split":
         args["commands"] = np.repeat(commands[None], 7, axis=0)
     elif what == "nan_state":
