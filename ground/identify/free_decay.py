@@ -80,6 +80,8 @@ class SpringDecayFit:
     cd: float  # eq. 9 from zeta - zeta_s at the launch amplitude
     amplitude_m: float  # launch amplitude used in eq. 9
     equilibrium_m: float
+    sine_amplitude_m: float  # the least-squares damped sinusoid: A and phi
+    sine_phase_rad: float
     # Chin / eq. 6 fitted directly
     chin_added_mass_kg: float
     chin_cm: float
@@ -87,6 +89,7 @@ class SpringDecayFit:
     k_q_n_s2_m2: float
     chin_cd: float
     chin_rmse_m: float
+    chin_initial: tuple  # (y0 m, y0' m/s) of the fitted eq. 6 simulation
 
 
 @dataclass(frozen=True)
@@ -107,6 +110,8 @@ class PendulumFit:
     k_q_n_s2_m2: float
     chin_cd: float
     chin_rmse_rad: float
+    initial: tuple  # (theta0 rad, theta0' rad/s) of the eq. 14 fit
+    chin_initial: tuple  # the same for the Chin fit
 
 
 # ------------------------------------------------------------------------------------------------
@@ -319,14 +324,15 @@ def spring_free_decay(t, y, mass_kg: float, spring_n_m: float, volume_m3: float,
     # eq. 9 (dimensionally consistent form, see the module docstring)
     cd = zeta_f * 4 * math.pi * m_tot / (rho * length_m ** 2 * (8.0 / 3.0) * amp)
     chin = _spring_chin(t, y, dt, spring_n_m, m_tot, ds)
-    m_chin, k_l, k_q, rmse = chin
+    m_chin, k_l, k_q, rmse, init = chin
     return SpringDecayFit(
         omega_n_rad_s=ds.omega_n_rad_s, zeta=ds.zeta,
         omega_n_log_decrement_rad_s=dec.omega_n_rad_s, zeta_log_decrement=dec.zeta,
         added_mass_kg=added, cm=added / (rho * volume_m3), cd=cd, amplitude_m=amp,
-        equilibrium_m=ds.offset,
+        equilibrium_m=ds.offset, sine_amplitude_m=ds.amplitude, sine_phase_rad=ds.phase_rad,
         chin_added_mass_kg=m_chin - mass_kg, chin_cm=(m_chin - mass_kg) / (rho * volume_m3),
         k_l_n_s_m=k_l, k_q_n_s2_m2=k_q, chin_cd=2 * k_q / (rho * length_m ** 2), chin_rmse_m=rmse,
+        chin_initial=init,
     )
 
 
@@ -359,7 +365,7 @@ def _spring_chin(t, y, dt, K, m_tot0, ds: DampedSine):
         max_nfev=200,
     )
     M, kl, kq = r.x[:3]
-    return float(M), float(kl), float(kq), float(np.sqrt(np.mean(r.fun ** 2)))
+    return float(M), float(kl), float(kq), float(np.sqrt(np.mean(r.fun ** 2))), (float(r.x[4]), float(r.x[5]))
 
 
 def synthesize_linear_decay(omega_n: float, zeta: float, amplitude: float, duration_s: float,
@@ -448,6 +454,7 @@ def pendulum_free_decay(t, theta, mass_kg: float, volume_m3: float, length_m: fl
         chin_a1=ca1, chin_al=cal, chin_aq=caq, chin_added_mass_kg=c_added,
         k_l_n_s_m=k_l, k_q_n_s2_m2=k_q, chin_cd=2 * k_q / (rho * wetted_area_m2),
         chin_rmse_rad=float(np.sqrt(np.mean(r_c.fun ** 2))),
+        initial=(float(r_m.x[2]), float(r_m.x[3])), chin_initial=(float(r_c.x[3]), float(r_c.x[4])),
     )
 
 
