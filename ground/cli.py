@@ -14,6 +14,7 @@ import sys
 # name -> (module, one-line help). Add a subcommand by adding a line here.
 SUBCOMMANDS = {
     "sim": ("hil.sim", "open-loop simulation of a commands CSV to a .tlog recording"),
+    "identify": ("ground.identify.cli", "the seed papers' identification methods: thrust, free-decay, pendulum, tables, azimuth"),
 }
 
 
