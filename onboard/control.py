@@ -43,6 +43,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from . import model
 from .estimator import EstimatedState
@@ -140,8 +141,8 @@ class Reference:
     yaw_rad: float
     yaw_rate_rad_s: float
     velocity_body_m_s: tuple  # u_r, v_r (None if uncontrolled), w_r
-    feedforward: Wrench
-    feedback: Wrench
+    feedforward: tuple  # [X, Y, Z, K, M, N] model feed-forward part of the demand
+    feedback: tuple  # [X, Y, Z, K, M, N] feedback part
 
 
 @dataclass(frozen=True)
@@ -207,6 +208,13 @@ class Controller:
         self._on_surface = vehicle.effects.on("surface_proximity")
         self._on_wall = vehicle.effects.on("wall_proximity")
         self._on_current = vehicle.effects.on("current")
+        g = self.gains
+        self._gain_vec = np.array([
+            g.depth_bandwidth_rad_s, g.attitude_bandwidth_rad_s, g.yaw_bandwidth_rad_s,
+            g.velocity_bandwidth_rad_s, g.damping_ratio, g.integral_share,
+        ])
+        self._flags = np.array([float(g.feedforward), float(self._on_surface), float(self._on_wall),
+                                float(self._on_current)])
         self.reset()
 
     @property
@@ -235,9 +243,7 @@ class Controller:
         self._psi_r = 0.0
         self._psid_r = 0.0
         self._vel_r = np.zeros(2)
-        self._int_z = 0.0  # int (z_r - z) dt, NED
-        self._int_att = np.zeros(3)  # int e_att dt, body
-        self._int_vel = np.zeros(2)  # int (u_r - u) dt, (v_r - v) dt
+        self._ints = np.zeros(6)  # int e dt: [u, v, z (NED), e_att (3, body)]
         self._last_tau = np.zeros(6)
         self.reference: Reference | None = None
 
@@ -324,40 +330,7 @@ class Controller:
                 self._vel_r[i], vel_dot_r[i] = nu[i], 0.0
         self._vel_r = self._vel_r + vel_dot_r * dt
 
-        # ---- kinematics ----------------------------------------------------------------------
-        q = model.euler_to_quat(phi, theta, psi)
-        R = model.rotation(q)  # body -> NED
-        Rt = R.T
-        # body rates of the level reference turning at psi_r': w_r = T^-1(phi, theta) [0, 0, psi_r']
-        # (Fossen 2011 eq. 2.30: p = phi' - s(theta) psi', q = c(phi) theta' + s(phi) c(theta) psi',
-        #  r = -s(phi) theta' + c(phi) c(theta) psi')
-        sph, cph, sth, cth = math.sin(phi), math.cos(phi), math.sin(theta), math.cos(theta)
-        t_inv = np.array([-sth, sph * cth, cph * cth])
-        w_ref = t_inv * self._psid_r
-        wd_ref = t_inv * psidd_r
-        # reference body velocity / acceleration: surge and sway from their prefilter, heave from
-        # the depth reference mapped to the body: v_r = [u_r, v_r, 0] + R^T [0, 0, z_r']
-        e3b = Rt[:, 2]
-        v_ref = np.array([self._vel_r[0], self._vel_r[1], 0.0]) + e3b * (self._zd_r if heave_on else 0.0)
-        vd_ref = np.array([vel_dot_r[0], vel_dot_r[1], 0.0]) + e3b * (zdd_r if heave_on else 0.0)
-        if not vel_on[0]:
-            v_ref[0], vd_ref[0] = nu[0], 0.0
-        if not vel_on[1]:
-            v_ref[1], vd_ref[1] = nu[1], 0.0
-        nu_ref = np.concatenate([v_ref, w_ref])
-        nud_ref = np.concatenate([vd_ref, wd_ref])
-
-        # ---- errors -------------------------------------------------------------------------
-        # attitude: q_e = q^-1 (x) q_ref, e = 2 sgn(q_e,w) vec(q_e) (body frame, small angle)
-        q_ref = model.euler_to_quat(0.0, 0.0, self._psi_r)
-        qe = _quat_mul(_quat_conj(q), q_ref)
-        e_att = 2.0 * math.copysign(1.0, qe[0]) * qe[1:4]
-        e_rate = w_ref - nu[3:6]
-        e_z = self._z_r - z if heave_on else 0.0
-        e_zd = self._zd_r - estimate.depth_rate_m_s if heave_on else 0.0
-        e_vel = self._vel_r - nu[0:2]
-
-        # ---- anti-windup: which axes may integrate ------------------------------------------
+        # ---- anti-windup inputs: which axes are saturated, and which way ----------------------
         cap = self.capacity
         demand = self._last_tau
         if achieved is not None:
@@ -365,73 +338,15 @@ class Controller:
             sat = np.isfinite(got) & (np.abs(demand - got) > 0.05 * cap)
         else:
             sat = np.abs(demand) >= cap
-        sat_dir = np.sign(demand)
-
-        def may_integrate(axis: int, err: float) -> bool:
-            return not (sat[axis] and np.sign(err) == sat_dir[axis])
-
-        M = self._mass_matrix(z)
-        Md = np.diag(M)
-        share = g.integral_share
-        # depth (NED z): PID in acceleration form
-        wz, zeta = g.depth_bandwidth_rad_s, g.damping_ratio
-        a_z = 0.0
-        if heave_on:
-            ki = wz ** 3 / 10.0
-            if may_integrate(2, e_z * e3b[2]):
-                self._int_z += e_z * dt
-            lim = share * cap[2] / Md[2] / ki
-            self._int_z = min(max(self._int_z, -lim), lim)
-            a_z = wz * wz * e_z + 2.0 * zeta * wz * e_zd + ki * self._int_z
-        else:
-            self._int_z = 0.0
-        a_fb = np.zeros(6)
-        a_fb[0:3] = e3b * a_z  # NED vertical acceleration expressed in the body
-        # surge, sway: PI on velocity
-        wv = g.velocity_bandwidth_rad_s
-        for i in range(2):
-            if not vel_on[i]:
-                self._int_vel[i] = 0.0
-                continue
-            ki = wv * wv / 4.0
-            if may_integrate(i, e_vel[i]):
-                self._int_vel[i] += e_vel[i] * dt
-            lim = share * cap[i] / Md[i] / ki
-            self._int_vel[i] = min(max(self._int_vel[i], -lim), lim)
-            a_fb[i] += wv * e_vel[i] + ki * self._int_vel[i]
-        # roll, pitch, yaw: PID on the attitude error
-        for j in range(3):
-            wa = g.attitude_bandwidth_rad_s if j < 2 else g.yaw_bandwidth_rad_s
-            ki = wa ** 3 / 10.0
-            if may_integrate(3 + j, e_att[j]):
-                self._int_att[j] += e_att[j] * dt
-            lim = share * cap[3 + j] / Md[3 + j] / ki
-            self._int_att[j] = min(max(self._int_att[j], -lim), lim)
-            a_fb[3 + j] = wa * wa * e_att[j] + 2.0 * zeta * wa * e_rate[j] + ki * self._int_att[j]
-
-        # ---- eq. (1) ----------------------------------------------------------------------------
-        tau_fb = M @ a_fb
-        if g.feedforward:
-            nu_c = np.zeros(6)
-            if self._on_current:
-                nu_c[0:3] = Rt @ np.asarray(self.vehicle.environment.current, float)
-            s = model.submerged_fraction(z, p[model.P_RADIUS]) if self._on_surface else 1.0
-            nu_r_ref = nu_ref - nu_c
-            tau_ff = (
-                M @ nud_ref  # M nu_r'
-                + model.coriolis_times_nu(M, nu - nu_c)  # C(nu_r) nu_r at the estimate
-                + model.damping(nu_r_ref, p)  # D(nu_r) nu_r at the reference
-            )
-            g_eta = -model.restoring(R, p, s)  # g(eta): model.restoring returns -g(eta)
-            tau_ff[0:3] += g_eta[0:3]  # forces only: the righting moment is left to help
-            for i in range(2):
-                if not vel_on[i]:
-                    tau_ff[i] = 0.0
-            if not heave_on:
-                tau_ff[0:3] -= e3b * float(e3b @ tau_ff[0:3])  # no vertical effort when heave is free
-        else:
-            tau_ff = np.zeros(6)
-        tau = tau_fb + tau_ff
+        ref = np.array([
+            self._z_r, self._zd_r, zdd_r, self._psi_r, self._psid_r, psidd_r,
+            self._vel_r[0], self._vel_r[1], vel_dot_r[0], vel_dot_r[1],
+            1.0 if vel_on[0] else 0.0, 1.0 if vel_on[1] else 0.0, 1.0 if heave_on else 0.0,
+        ])
+        est = np.array([phi, theta, psi, z, estimate.depth_rate_m_s])
+        tau, tau_ff, w_r = _control_law(
+            p, est, nu, ref, self._gain_vec, cap, sat, np.sign(demand) * sat, self._ints, dt, self._flags,
+        )
         self._last_tau = tau
         self.reference = Reference(
             depth_m=self._z_r if heave_on else None,
@@ -441,28 +356,132 @@ class Controller:
             velocity_body_m_s=(
                 float(self._vel_r[0]) if vel_on[0] else None,
                 float(self._vel_r[1]) if vel_on[1] else None,
-                float(v_ref[2]),
+                float(w_r),
             ),
-            feedforward=Wrench.from_array(tau_ff),
-            feedback=Wrench.from_array(tau_fb),
+            feedforward=tuple(tau_ff.tolist()),
+            feedback=tuple((tau - tau_ff).tolist()),
         )
-        return Wrench.from_array(tau)
+        return Wrench(tuple(tau[0:3].tolist()), tuple(tau[3:6].tolist()))
 
 
-def _quat_conj(q) -> np.ndarray:
-    return np.array([q[0], -q[1], -q[2], -q[3]])
+@njit(cache=True)
+def _control_law(p, est, nu, ref, gv, cap, sat, sat_dir, ints, dt, flags):
+    """Eq. (1): tau = M (nu_r' + a_fb) + C(nu) nu + D(nu_r) nu_r + g_F(eta), and the integrators.
 
-
-def _quat_mul(a, b) -> np.ndarray:
-    """Hamilton product a (x) b, [w, x, y, z]."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
+    est = [phi, theta, psi, depth, depth'], ref = [z_r, z_r', z_r'', psi_r, psi_r', psi_r'',
+    u_r, v_r, u_r', v_r', surge on, sway on, heave on], gv = [w_depth, w_att, w_yaw, w_vel,
+    zeta, integral share], ints = [int e_u, int e_v, int e_z, int e_att (3)] (updated in place),
+    flags = [feedforward, surface, wall, current]. Returns (tau, tau_ff, w_r).
+    """
+    phi, theta, psi, z, zdot = est[0], est[1], est[2], est[3], est[4]
+    z_r, zd_r, zdd_r, psi_r, psid_r, psidd_r = ref[0], ref[1], ref[2], ref[3], ref[4], ref[5]
+    surge_on, sway_on, heave_on = ref[10] > 0.5, ref[11] > 0.5, ref[12] > 0.5
+    w_z, w_a, w_y, w_v, zeta, share = gv[0], gv[1], gv[2], gv[3], gv[4], gv[5]
+    # ---- kinematics ------------------------------------------------------------------------
+    q = np.empty(4)
+    cr, sr = math.cos(phi / 2), math.sin(phi / 2)
+    cp, sp = math.cos(theta / 2), math.sin(theta / 2)
+    cy, sy = math.cos(psi / 2), math.sin(psi / 2)
+    q[0] = cr * cp * cy + sr * sp * sy  # q = q_z(psi) q_y(theta) q_x(phi)
+    q[1] = sr * cp * cy - cr * sp * sy
+    q[2] = cr * sp * cy + sr * cp * sy
+    q[3] = cr * cp * sy - sr * sp * cy
+    R = model.rotation(q)  # body -> NED
+    e3b = np.array([R[2, 0], R[2, 1], R[2, 2]])  # R^T [0, 0, 1]
+    # body rates of the level reference turning at psi_r': w_r = T^-1(phi, theta) [0, 0, psi_r']
+    # (Fossen 2011 eq. 2.30: p = phi' - s(theta) psi', q = c(phi) theta' + s(phi) c(theta) psi',
+    #  r = -s(phi) theta' + c(phi) c(theta) psi')
+    sph, cph, sth, cth = math.sin(phi), math.cos(phi), math.sin(theta), math.cos(theta)
+    nu_ref = np.empty(6)
+    nud_ref = np.empty(6)
+    t_inv = np.array([-sth, sph * cth, cph * cth])
+    # v_r = [u_r, v_r, 0] + R^T [0, 0, z_r'] (heave from the depth reference)
+    hz, hzd = (zd_r, zdd_r) if heave_on else (0.0, 0.0)
+    for i in range(3):
+        nu_ref[i] = e3b[i] * hz
+        nud_ref[i] = e3b[i] * hzd
+        nu_ref[3 + i] = t_inv[i] * psid_r
+        nud_ref[3 + i] = t_inv[i] * psidd_r
+    on = (surge_on, sway_on)
+    for i in range(2):
+        if on[i]:
+            nu_ref[i] += ref[6 + i]
+            nud_ref[i] += ref[8 + i]
+        else:
+            nu_ref[i], nud_ref[i] = nu[i], 0.0
+    # ---- errors ------------------------------------------------------------------------------
+    # attitude: q_e = q^-1 (x) q_ref, q_ref = level at psi_r; e = 2 sgn(q_e,w) vec(q_e) (body)
+    c2, s2 = math.cos(psi_r / 2), math.sin(psi_r / 2)
+    qw, qx, qy, qz = q[0], -q[1], -q[2], -q[3]
+    ew = qw * c2 - qz * s2
+    ex = qx * c2 + qy * s2
+    ey = qy * c2 - qx * s2
+    ez = qw * s2 + qz * c2
+    sgn = 1.0 if ew >= 0.0 else -1.0
+    e_att = np.array([2.0 * sgn * ex, 2.0 * sgn * ey, 2.0 * sgn * ez])
+    # ---- mass matrix at the estimated depth ---------------------------------------------------
+    s = model.submerged_fraction(z, p[model.P_RADIUS]) if flags[1] > 0.5 else 1.0
+    wall = model.wall_factor(z + p[model.P_SURF], p[model.P_FLOOR], p[model.P_RADIUS], p[model.P_KWALL]) if flags[2] > 0.5 else 1.0
+    M = model.mass_matrix(p, s, wall)
+    a_fb = np.zeros(6)
+    # ---- depth (NED z): PID in acceleration form, mapped to the body by R^T -------------------
+    if heave_on:
+        e_z, e_zd = z_r - z, zd_r - zdot
+        ki = w_z ** 3 / 10.0
+        if not (sat[2] and np.sign(e_z * e3b[2]) == sat_dir[2]):
+            ints[2] += e_z * dt
+        lim = share * cap[2] / M[2, 2] / ki
+        ints[2] = min(max(ints[2], -lim), lim)
+        a_z = w_z * w_z * e_z + 2.0 * zeta * w_z * e_zd + ki * ints[2]
+        for i in range(3):
+            a_fb[i] = e3b[i] * a_z
+    else:
+        ints[2] = 0.0
+    # ---- surge, sway: PI on velocity -----------------------------------------------------------
+    for i in range(2):
+        if not on[i]:
+            ints[i] = 0.0
+            continue
+        e_v = ref[6 + i] - nu[i]
+        ki = w_v * w_v / 4.0
+        if not (sat[i] and np.sign(e_v) == sat_dir[i]):
+            ints[i] += e_v * dt
+        lim = share * cap[i] / M[i, i] / ki
+        ints[i] = min(max(ints[i], -lim), lim)
+        a_fb[i] += w_v * e_v + ki * ints[i]
+    # ---- roll, pitch, yaw: PID on the attitude error -------------------------------------------
+    for j in range(3):
+        wa = w_a if j < 2 else w_y
+        ki = wa ** 3 / 10.0
+        if not (sat[3 + j] and np.sign(e_att[j]) == sat_dir[3 + j]):
+            ints[3 + j] += e_att[j] * dt
+        lim = share * cap[3 + j] / M[3 + j, 3 + j] / ki
+        ints[3 + j] = min(max(ints[3 + j], -lim), lim)
+        a_fb[3 + j] = wa * wa * e_att[j] + 2.0 * zeta * wa * (nu_ref[3 + j] - nu[3 + j]) + ki * ints[3 + j]
+    tau_fb = M @ a_fb
+    # ---- feed-forward ------------------------------------------------------------------------------
+    tau_ff = np.zeros(6)
+    if flags[0] > 0.5:
+        nu_c = np.zeros(6)
+        if flags[3] > 0.5:  # nu_c = [R^T v_c, 0]
+            for i in range(3):
+                nu_c[i] = R[0, i] * p[model.P_CURRENT] + R[1, i] * p[model.P_CURRENT + 1] + R[2, i] * p[model.P_CURRENT + 2]
+        tau_ff = (
+            M @ nud_ref  # M nu_r'
+            + model.coriolis_times_nu(M, nu - nu_c)  # C(nu_r) nu_r at the estimate
+            + model.damping(nu_ref - nu_c, p)  # D(nu_r) nu_r at the reference
+        )
+        g_eta = model.restoring(R, p, s)  # -g(eta) as the model writes it
+        for i in range(3):
+            tau_ff[i] -= g_eta[i]  # + g_F(eta): forces only, the righting moment is left to help
+        for i in range(2):
+            if not on[i]:
+                tau_ff[i] = 0.0
+        if not heave_on:  # heave free: no vertical effort
+            fz = e3b[0] * tau_ff[0] + e3b[1] * tau_ff[1] + e3b[2] * tau_ff[2]
+            for i in range(3):
+                tau_ff[i] -= e3b[i] * fz
+    return tau_fb + tau_ff, tau_ff, nu_ref[2]
 
 
 __all__ = ["Controller", "Gains", "ManualAxes", "Reference", "Setpoint", "Wrench", "axis_capacity"]

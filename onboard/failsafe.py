@@ -27,6 +27,7 @@ from enum import Enum
 import numpy as np
 
 IMU_TIMEOUT_S = 0.3
+_EPS_S = 1e-9  # timestamps are sums of steps: 1.3 - 1.0 must count as 0.3, not as 0.30000000000000004
 
 
 class Mode(Enum):
@@ -81,7 +82,7 @@ def on_tick(state: FailsafeState, time_s: float, estimator_diverged: bool = Fals
     if state.mode is not Mode.ARMED:
         return state
     age = state.imu_age_s(t)
-    if age > state.imu_timeout_s:
+    if age > state.imu_timeout_s + _EPS_S:
         return _go(state, Mode.FAILSAFE, f"no IMU for {age:.2f} s (limit {state.imu_timeout_s:.2f} s)", t)
     if estimator_diverged:
         return _go(state, Mode.FAILSAFE, f"estimator diverged: {estimator_reason or 'unspecified'}", t)
@@ -96,7 +97,7 @@ def on_arm(state: FailsafeState, time_s: float, estimator_diverged: bool = False
     if state.mode is Mode.FAILSAFE:
         return replace(state, reason=f"{state.reason}; arm refused: disarm (or reset) first")
     age = state.imu_age_s(t)
-    if age > state.imu_timeout_s:
+    if age > state.imu_timeout_s + _EPS_S:
         why = "no IMU yet" if state.last_imu_s is None else f"no IMU for {age:.2f} s"
         return replace(state, reason=f"arm refused: {why}")
     if estimator_diverged:
