@@ -11,9 +11,10 @@ equilibrium y_eq:
   the whole trace gives omega_n and zeta;
 - added mass m' = K / omega_n^2 - m (eq. 7), C_m = m' / (rho V) (eq. 3);
 - C_D from the fluid part of the damping, zeta = zeta_s + zeta_f (eq. 8), with eq. 9 written in a
-  dimensionally consistent form: zeta_f = rho D^2 (8/3) C_D A / (4 pi (m + m')), A the launch
-  amplitude in metres and D^2 the reference area (the seed prints A/D, which leaves 1/m over);
-  this is the energy-equivalent linearisation of (1/2) rho C_D D^2 |y'| y';
+  dimensionally consistent form: zeta_f = rho D^2 (8/3) C_D A / (4 pi (m + m')), A the amplitude
+  in metres and D^2 the reference area (the seed prints A/D, which leaves 1/m over); this is the
+  energy-equivalent linearisation of (1/2) rho C_D D^2 |y'| y'. zeta and A are taken over the
+  first period of the launch (Figure 7's two consecutive peaks);
 - Chin's linear + quadratic form: eq. 6 itself fitted to the trace (equation error on smoothed
   derivatives, then output error by simulation), giving m', K_L (N s/m) and K_Q (N s^2/m^2)
   directly; C_D = 2 K_Q / (rho D^2).
@@ -53,6 +54,7 @@ class Decrement:
     delta: float  # logarithmic decrement per full period
     n_extrema: int
     first_amplitude: float  # |y - y_eq| at the first extremum
+    amplitudes: tuple = ()  # |y - y_eq| at each extremum used
 
 
 @dataclass(frozen=True)
@@ -78,7 +80,8 @@ class SpringDecayFit:
     added_mass_kg: float  # eq. 7 from omega_n
     cm: float  # added mass / (rho V)
     cd: float  # eq. 9 from zeta - zeta_s at the launch amplitude
-    amplitude_m: float  # launch amplitude used in eq. 9
+    amplitude_m: float  # amplitude A used in eq. 9 (the first period's, see first_period_zeta)
+    zeta_first_period: float  # decrement of the first period, the zeta eq. 9 pairs with A
     equilibrium_m: float
     sine_amplitude_m: float  # the least-squares damped sinusoid: A and phi
     sine_phase_rad: float
@@ -224,6 +227,7 @@ def log_decrement(t, y, offset: float = None, max_extrema: int = 12) -> Decremen
     return Decrement(
         omega_n_rad_s=omega_d / math.sqrt(1 - zeta ** 2), zeta=zeta, omega_d_rad_s=omega_d,
         period_s=period, delta=delta, n_extrema=int(tp.size), first_amplitude=float(ap[0]),
+        amplitudes=tuple(float(a) for a in ap),
     )
 
 
@@ -319,8 +323,14 @@ def spring_free_decay(t, y, mass_kg: float, spring_n_m: float, volume_m3: float,
     dec = log_decrement(t, y, offset=ds.offset)
     added = spring_n_m / ds.omega_n_rad_s ** 2 - mass_kg  # eq. 7
     m_tot = mass_kg + added
-    amp = dec.first_amplitude
-    zeta_f = ds.zeta - zeta_structural  # eq. 8
+    # eq. 9 pairs a damping ratio with the amplitude it was measured at: the first period
+    # (extrema 0 and 2), with A0 A2 ln(A0/A2) / (A0 - A2), the amplitude at which a quadratic
+    # damping's equivalent zeta equals that period's decrement (1/A grows linearly in time)
+    a0, a2 = dec.amplitudes[0], dec.amplitudes[2]
+    d1 = math.log(a0 / a2)
+    zeta1 = d1 / math.sqrt(4 * math.pi ** 2 + d1 ** 2)
+    amp = a0 * a2 * d1 / (a0 - a2) if a0 > a2 else a0
+    zeta_f = zeta1 - zeta_structural  # eq. 8
     # eq. 9 (dimensionally consistent form, see the module docstring)
     cd = zeta_f * 4 * math.pi * m_tot / (rho * length_m ** 2 * (8.0 / 3.0) * amp)
     chin = _spring_chin(t, y, dt, spring_n_m, m_tot, ds)
@@ -328,7 +338,7 @@ def spring_free_decay(t, y, mass_kg: float, spring_n_m: float, volume_m3: float,
     return SpringDecayFit(
         omega_n_rad_s=ds.omega_n_rad_s, zeta=ds.zeta,
         omega_n_log_decrement_rad_s=dec.omega_n_rad_s, zeta_log_decrement=dec.zeta,
-        added_mass_kg=added, cm=added / (rho * volume_m3), cd=cd, amplitude_m=amp,
+        added_mass_kg=added, cm=added / (rho * volume_m3), cd=cd, amplitude_m=amp, zeta_first_period=zeta1,
         equilibrium_m=ds.offset, sine_amplitude_m=ds.amplitude, sine_phase_rad=ds.phase_rad,
         chin_added_mass_kg=m_chin - mass_kg, chin_cm=(m_chin - mass_kg) / (rho * volume_m3),
         k_l_n_s_m=k_l, k_q_n_s2_m2=k_q, chin_cd=2 * k_q / (rho * length_m ** 2), chin_rmse_m=rmse,
