@@ -1,0 +1,567 @@
+"""Recordings in (spec/recording.md section 1): .tlog or dataflash .bin -> a frozen `Recording`.
+
+A `.tlog` is a sequence of [8-byte big-endian microsecond timestamp][MAVLink 1 or 2 packet].
+Its framing is scanned by a compiled pass (`_scan_tlog`) that checks every packet's CRC with
+the dialect's CRC_EXTRA (the same check pymavlink's parser makes), so a damaged file is read as
+far as it is sound and every byte that is not part of a good packet is counted:
+- a packet whose CRC fails is counted in `bad_crc_packets` (and its bytes in `skipped_bytes`);
+- bytes between packets that frame as nothing (garbage, a torn write) are skipped until the next
+  position where a plausible timestamp is followed by a packet with a good CRC;
+- a truncated last packet is counted in `truncated_bytes`.
+Payloads of the messages the diagnosis needs are then decoded in bulk with numpy (the
+dialect's own struct layout, MAVLink 2 zero-truncation undone), so a 10-minute 100 Hz log
+reads in about a second.
+
+Dataflash `.bin` logs are read with pymavlink's DFReader (IMU, BARO instance 1 = the depth
+sensor, RCOU, ATT, ESC); the bytes its parser skips are counted as well.
+
+Streams are aligned on vehicle time (the messages' own `time_usec` / `time_boot_ms`, in
+seconds since boot); within a stream a sample whose time does not increase is dropped and
+counted in `non_monotonic`; gaps longer than five nominal periods are listed.
+ArduSub units: SCALED_IMU / SCALED_IMU2 / RAW_IMU carry accel in mG and gyro in mrad/s
+(ArduPilot GCS_Common send_scaled_imu / send_raw_imu); SCALED_PRESSURE2 press_abs in hPa.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+G_MSS = 9.80665  # ArduPilot GRAVITY_MSS, the mG scale of SCALED_IMU / RAW_IMU
+
+
+class RecordingError(ValueError):
+    """A file that cannot be read as a recording; the message names the file and the problem."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Domain types
+
+
+def _frozen(a) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class ImuStream:
+    time_s: np.ndarray
+    accel_frd_m_s2: np.ndarray  # (N, 3) specific force
+    gyro_frd_rad_s: np.ndarray  # (N, 3)
+    message: str  # which MAVLink / dataflash message it came from
+
+
+@dataclass(frozen=True)
+class PressureStream:
+    time_s: np.ndarray
+    press_abs_pa: np.ndarray
+    message: str
+
+
+@dataclass(frozen=True)
+class ServoStream:
+    time_s: np.ndarray
+    pwm_us: np.ndarray  # (N, 16): channel c is column c - 1; 0 where not sent
+
+
+@dataclass(frozen=True)
+class AttitudeStream:
+    time_s: np.ndarray
+    euler_rad: np.ndarray  # (N, 3) roll, pitch, yaw
+    rates_rad_s: np.ndarray  # (N, 3)
+
+
+@dataclass(frozen=True)
+class EscStream:
+    time_s: np.ndarray
+    rpm: np.ndarray  # (N, 4)
+
+
+@dataclass(frozen=True)
+class MocapStream:
+    time_s: np.ndarray
+    quat_wxyz: np.ndarray  # (N, 4) body to NED
+    pos_ned_m: np.ndarray  # (N, 3)
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """What was not used, counted: nothing is dropped silently (spec/recording.md section 1)."""
+
+    bad_crc_packets: int = 0
+    skipped_bytes: int = 0  # garbage between packets + bad-CRC packets + a truncated tail
+    truncated_bytes: int = 0  # of those, the torn packet at the end of the file
+    unknown_packets: int = 0  # good framing, message id not in the dialect (CRC not checkable)
+    non_monotonic: dict = field(default_factory=dict)  # stream -> samples dropped
+    gaps: tuple = ()  # (stream, t0_s, t1_s) where a stream stops for > 5 periods
+
+
+@dataclass(frozen=True)
+class Recording:
+    source: str
+    format: str  # "tlog" or "dataflash"
+    messages: dict  # message type -> count of good packets (from the vehicle)
+    skipped: Skipped
+    imu: ImuStream | None
+    pressure: PressureStream | None
+    servo: ServoStream | None
+    attitude: AttitudeStream | None = None
+    esc: EscStream | None = None
+    mocap: MocapStream | None = None
+    vehicle_id: tuple = (1, 1)  # (system, component) whose messages were used
+
+    @property
+    def streams(self) -> dict:
+        names = ("imu", "pressure", "servo", "attitude", "esc", "mocap")
+        return {n: getattr(self, n) for n in names if getattr(self, n) is not None}
+
+    @property
+    def t_start_s(self) -> float:
+        return min(float(s.time_s[0]) for s in self.streams.values() if len(s.time_s))
+
+    @property
+    def t_end_s(self) -> float:
+        return max(float(s.time_s[-1]) for s in self.streams.values() if len(s.time_s))
+
+    @property
+    def duration_s(self) -> float:
+        return self.t_end_s - self.t_start_s if self.streams else 0.0
+
+    def summary(self) -> dict:
+        """The `recording` block of the diagnosis report (spec/recording.md section 2)."""
+        s = self.skipped
+        return {
+            "source": self.source,
+            "format": self.format,
+            "duration_s": round(self.duration_s, 3),
+            "messages": dict(sorted(self.messages.items())),
+            "skipped_bytes": s.skipped_bytes,
+            "bad_crc_packets": s.bad_crc_packets,
+            "truncated_bytes": s.truncated_bytes,
+            "unknown_packets": s.unknown_packets,
+            "non_monotonic": dict(s.non_monotonic),
+            "gaps": [{"stream": g[0], "t0": round(g[1], 3), "t1": round(g[2], 3)} for g in s.gaps],
+        }
+
+
+# ------------------------------------------------------------------------------------------------
+# Entry point
+
+
+def read_recording(path) -> Recording:
+    """Read a `.tlog` or dataflash `.bin` recording; raises `RecordingError` with the reason."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read recording: {exc.strerror or exc}") from exc
+    if not data:
+        raise RecordingError(f"{path}: empty file, expected a .tlog or dataflash .bin recording")
+    if data[:2] == b"\xa3\x95" or path.suffix.lower() == ".bin":
+        return _read_dataflash(path, data)
+    return _read_tlog(path, data)
+
+
+# ------------------------------------------------------------------------------------------------
+# .tlog: compiled framing scan
+
+
+def _dialect():
+    from pymavlink.dialects.v20 import ardupilotmega  # explicit dialect, never from the environment
+
+    return ardupilotmega
+
+
+def _crc_table():
+    d = _dialect()
+    ids = np.array(sorted(d.mavlink_map), dtype=np.int64)
+    extra = np.array([d.mavlink_map[i].crc_extra for i in ids], dtype=np.int64)
+    return ids, extra
+
+
+@njit(cache=True)
+def _x25(buf, start, stop, extra):
+    """CRC-16/MCRF4XX over buf[start:stop] then the CRC_EXTRA byte (MAVLink checksum.h)."""
+    crc = 0xFFFF
+    for i in range(start, stop + 1):
+        b = buf[i] if i < stop else extra
+        tmp = (b ^ (crc & 0xFF)) & 0xFF
+        tmp = (tmp ^ (tmp << 4)) & 0xFF
+        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return crc
+
+
+@njit(cache=True)
+def _frame(buf, p, ids, extra):
+    """Packet at p (after its timestamp): (status, length, msgid, sys, comp, payload_off, plen).
+
+    status 0 good, 1 bad CRC, 2 unknown id, 3 not a packet, 4 truncated.
+    """
+    n = buf.shape[0]
+    if p >= n:
+        return 4, 0, 0, 0, 0, 0, 0
+    magic = buf[p]
+    if magic == 0xFD:
+        if p + 10 > n:
+            return 4, n - p, 0, 0, 0, 0, 0
+        plen = buf[p + 1]
+        sig = 13 if (buf[p + 2] & 1) else 0
+        if buf[p + 2] & 0xFE:  # unknown incompatibility flag: not a packet we can trust
+            return 3, 0, 0, 0, 0, 0, 0
+        total = 10 + plen + 2 + sig
+        msgid = buf[p + 7] | (buf[p + 8] << 8) | (buf[p + 9] << 16)
+        sysid, compid, hdr = buf[p + 5], buf[p + 6], 10
+    elif magic == 0xFE:
+        if p + 6 > n:
+            return 4, n - p, 0, 0, 0, 0, 0
+        plen = buf[p + 1]
+        total = 6 + plen + 2
+        sig = 0
+        msgid = buf[p + 5]
+        sysid, compid, hdr = buf[p + 3], buf[p + 4], 6
+    else:
+        return 3, 0, 0, 0, 0, 0, 0
+    if p + total > n:
+        return 4, n - p, msgid, sysid, compid, 0, 0
+    k = np.searchsorted(ids, msgid)
+    if k >= ids.shape[0] or ids[k] != msgid:
+        return 2, total, msgid, sysid, compid, p + hdr, plen
+    crc = buf[p + hdr + plen] | (buf[p + hdr + plen + 1] << 8)
+    if _x25(buf, p + 1, p + hdr + plen, extra[k]) != crc:
+        return 1, total, msgid, sysid, compid, p + hdr, plen
+    return 0, total, msgid, sysid, compid, p + hdr, plen
+
+
+@njit(cache=True)
+def _timestamp(buf, p):
+    t = np.uint64(0)
+    for i in range(8):
+        t = (t << np.uint64(8)) | np.uint64(buf[p + i])
+    return t
+
+
+@njit(cache=True)
+def _plausible(buf, p, last_ts, ids, extra):
+    """A resync point: timestamp near the last good one (or any, before the first) + a good packet."""
+    if p + 8 >= buf.shape[0]:
+        return False
+    ts = _timestamp(buf, p)
+    if last_ts > np.uint64(0):
+        lo = last_ts - np.uint64(3600_000_000) if last_ts > np.uint64(3600_000_000) else np.uint64(0)
+        if ts < lo or ts > last_ts + np.uint64(86_400_000_000):
+            return False
+    st = _frame(buf, p + 8, ids, extra)[0]
+    return st == 0
+
+
+@njit(cache=True)
+def _scan_tlog(buf, ids, extra):
+    """Walk [ts][packet]...; returns per-packet arrays and the skip counters (see module doc)."""
+    n = buf.shape[0]
+    cap = n // 16 + 16
+    off = np.empty(cap, np.int64)
+    plen_a = np.empty(cap, np.int64)
+    mid = np.empty(cap, np.int64)
+    src = np.empty(cap, np.int64)
+    tsa = np.empty(cap, np.uint64)
+    m = 0
+    bad_crc = 0
+    unknown = 0
+    skipped = 0
+    truncated = 0
+    last_ts = np.uint64(0)
+    p = 0
+    while p < n:
+        if p + 8 > n:
+            truncated += n - p
+            skipped += n - p
+            break
+        st, total, msgid, sysid, compid, poff, plen = _frame(buf, p + 8, ids, extra)
+        if st == 4 and not _plausible_tail(buf, p, last_ts):
+            st = 3
+        if st == 4:
+            truncated += n - p
+            skipped += n - p
+            break
+        if st == 3:
+            q = p + 1
+            while q < n and not _plausible(buf, q, last_ts, ids, extra):
+                q += 1
+            skipped += q - p
+            if q >= n:
+                break
+            p = q
+            continue
+        if st == 1:
+            bad_crc += 1
+            skipped += 8 + total
+            p += 8 + total
+            continue
+        if st == 2:
+            unknown += 1
+            p += 8 + total
+            continue
+        ts = _timestamp(buf, p)
+        last_ts = ts
+        off[m] = poff
+        plen_a[m] = plen
+        mid[m] = msgid
+        src[m] = sysid * 256 + compid
+        tsa[m] = ts
+        m += 1
+        p += 8 + total
+    return off[:m], plen_a[:m], mid[:m], src[:m], tsa[:m], bad_crc, unknown, skipped, truncated
+
+
+@njit(cache=True)
+def _plausible_tail(buf, p, last_ts):
+    """A torn packet at the end only if its timestamp is plausible; else it is garbage."""
+    if last_ts == np.uint64(0):
+        return True
+    ts = _timestamp(buf, p)
+    return last_ts - np.uint64(3600_000_000) <= ts <= last_ts + np.uint64(86_400_000_000)
+
+
+# Bulk payload decoding with the dialect's own struct layout.
+
+_STRUCT_TO_NP = {"Q": "<u8", "q": "<i8", "I": "<u4", "i": "<i4", "H": "<u2", "h": "<i2",
+                 "B": "u1", "b": "i1", "f": "<f4", "d": "<f8", "c": "S1", "s": "S1"}
+
+
+def _payload_dtype(cls) -> tuple[np.dtype, int]:
+    fmt = cls.unpacker.format.lstrip("<")
+    items = []
+    i = 0
+    while i < len(fmt):
+        j = i
+        while fmt[j].isdigit():
+            j += 1
+        count = int(fmt[i:j]) if j > i else 1
+        items.append((fmt[j], count))
+        i = j + 1
+    fields = []
+    names = list(cls.ordered_fieldnames)
+    for name, (code, count) in zip(names, items):
+        base = _STRUCT_TO_NP[code]
+        fields.append((name, base, (count,)) if count > 1 and code not in "cs" else
+                      (name, f"S{count}" if code in "cs" else base))
+    dt = np.dtype(fields)
+    return dt, struct.calcsize("<" + cls.unpacker.format.lstrip("<"))
+
+
+def _decode_bulk(buf: np.ndarray, offsets, lengths, cls) -> np.ndarray:
+    """Structured array of the payloads at `offsets` (MAVLink 2 trailing-zero truncation undone)."""
+    dt, full = _payload_dtype(cls)
+    n = len(offsets)
+    raw = np.zeros((n, full), dtype=np.uint8)
+    cols = np.arange(full)
+    idx = offsets[:, None] + cols[None, :]
+    mask = cols[None, :] < np.minimum(lengths, full)[:, None]
+    raw[mask] = buf[idx[mask]]
+    return raw.view(dt).reshape(n)
+
+
+WANTED = ("HEARTBEAT", "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "SCALED_PRESSURE2",
+          "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ATT_POS_MOCAP")
+
+
+def _read_tlog(path: Path, data: bytes) -> Recording:
+    d = _dialect()
+    buf = np.frombuffer(data, dtype=np.uint8)
+    ids, extra = _crc_table()
+    off, plen, mid, src, ts, bad_crc, unknown, skipped, truncated = _scan_tlog(buf, ids, extra)
+    if len(off) == 0:
+        raise RecordingError(
+            f"{path}: no MAVLink packet with a good CRC found; expected a .tlog "
+            "([8-byte timestamp][MAVLink packet]...) or a dataflash .bin")
+    name_to_id = {cls.msgname: i for i, cls in d.mavlink_map.items()}
+    vehicle = _vehicle_source(buf, off, plen, mid, src, d)
+    use = src == vehicle[0] * 256 + vehicle[1]
+    counts = {}
+    decoded = {}
+    for name in set(d.mavlink_map[i].msgname for i in np.unique(mid[use])):
+        sel = use & (mid == name_to_id[name])
+        counts[name] = int(sel.sum())
+        if name in WANTED and name != "HEARTBEAT":
+            decoded[name] = _decode_bulk(buf, off[sel], plen[sel], d.mavlink_map[name_to_id[name]])
+    nonmono: dict = {}
+    gaps: list = []
+    imu = _imu_from_tlog(decoded, nonmono, gaps)
+    pressure = None
+    if "SCALED_PRESSURE2" in decoded:
+        a = decoded["SCALED_PRESSURE2"]
+        t, keep = _monotonic(a["time_boot_ms"] * 1e-3, "pressure", nonmono, gaps)
+        pressure = PressureStream(_frozen(t), _frozen(a["press_abs"][keep] * 100.0), "SCALED_PRESSURE2")
+    servo = None
+    if "SERVO_OUTPUT_RAW" in decoded:
+        servo = _servo_from_tlog(decoded["SERVO_OUTPUT_RAW"], nonmono, gaps)
+    attitude = None
+    if "ATTITUDE" in decoded:
+        a = decoded["ATTITUDE"]
+        t, keep = _monotonic(a["time_boot_ms"] * 1e-3, "attitude", nonmono, gaps)
+        e = np.column_stack([a["roll"], a["pitch"], a["yaw"]])[keep]
+        r = np.column_stack([a["rollspeed"], a["pitchspeed"], a["yawspeed"]])[keep]
+        attitude = AttitudeStream(_frozen(t), _frozen(e), _frozen(r))
+    esc = None
+    if "ESC_STATUS" in decoded:
+        a = decoded["ESC_STATUS"]
+        a = a[a["index"] == 0]  # units 1-4
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) * 1e-6, "esc", nonmono, gaps)
+        esc = EscStream(_frozen(t), _frozen(np.asarray(a["rpm"], float)[keep]))
+    mocap = None
+    if "ATT_POS_MOCAP" in decoded:
+        a = decoded["ATT_POS_MOCAP"]
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) * 1e-6, "mocap", nonmono, gaps)
+        mocap = MocapStream(_frozen(t), _frozen(np.asarray(a["q"], float)[keep]),
+                            _frozen(np.column_stack([a["x"], a["y"], a["z"]])[keep]))
+    skipped_info = Skipped(int(bad_crc), int(skipped), int(truncated), int(unknown), nonmono, tuple(gaps))
+    return Recording(str(path), "tlog", counts, skipped_info, imu, pressure, servo, attitude, esc,
+                     mocap, vehicle)
+
+
+def _vehicle_source(buf, off, plen, mid, src, d) -> tuple:
+    """(system, component) of the vehicle: the first HEARTBEAT of an autopilot, else (1, 1)."""
+    hb = np.nonzero(mid == 0)[0]
+    if len(hb):
+        a = _decode_bulk(buf, off[hb], plen[hb], d.mavlink_map[0])
+        ok = a["autopilot"] != 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not the vehicle
+        sub = ok & (a["type"] == 12)  # MAV_TYPE_SUBMARINE
+        pick = np.nonzero(sub)[0] if sub.any() else np.nonzero(ok)[0]
+        if len(pick):
+            s = int(src[hb[pick[0]]])
+            return (s // 256, s % 256)
+    return (1, 1)
+
+
+def _unwrap_us(t_us) -> np.ndarray:
+    """uint32 microsecond clocks (SERVO_OUTPUT_RAW) wrap after 71.6 min: unwrap them."""
+    t = np.asarray(t_us, dtype=np.float64)
+    if t.size and t.max() < 2 ** 32:
+        jumps = np.diff(t) < -2 ** 31
+        t = t + np.concatenate([[0.0], np.cumsum(jumps) * 2.0 ** 32])
+    return t
+
+
+def _monotonic(t, stream: str, nonmono: dict, gaps: list):
+    """Keep samples whose time increases (count the others); list gaps > 5 median periods."""
+    t = np.asarray(t, dtype=float)
+    keep = np.zeros(len(t), dtype=bool)
+    if len(t):
+        running = np.maximum.accumulate(t)
+        keep[0] = True
+        keep[1:] = t[1:] > running[:-1]
+    dropped = int(len(t) - keep.sum())
+    if dropped:
+        nonmono[stream] = nonmono.get(stream, 0) + dropped
+    tk = t[keep]
+    if len(tk) > 2:
+        dt = np.diff(tk)
+        period = float(np.median(dt))
+        for i in np.nonzero(dt > 5 * period + 1e-9)[0]:
+            gaps.append((stream, float(tk[i]), float(tk[i + 1])))
+    return tk, keep
+
+
+def _imu_from_tlog(decoded: dict, nonmono: dict, gaps: list) -> ImuStream | None:
+    if "HIGHRES_IMU" in decoded:
+        a = decoded["HIGHRES_IMU"]
+        a = a[a["id"] == 0] if "id" in a.dtype.names and (a["id"] == 0).any() else a
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) * 1e-6, "imu", nonmono, gaps)
+        acc = np.column_stack([a["xacc"], a["yacc"], a["zacc"]])[keep]
+        gyr = np.column_stack([a["xgyro"], a["ygyro"], a["zgyro"]])[keep]
+        return ImuStream(_frozen(t), _frozen(acc), _frozen(gyr), "HIGHRES_IMU")
+    # ArduSub sends RAW_IMU and SCALED_IMU for the primary IMU and SCALED_IMU2 for the second;
+    # an IMU that is not fitted is sent as all zeros and is passed over.
+    for name, tkey in (("RAW_IMU", "time_usec"), ("SCALED_IMU", "time_boot_ms"), ("SCALED_IMU2", "time_boot_ms")):
+        if name in decoded and any(np.any(decoded[name][k] != 0) for k in ("xacc", "yacc", "zacc")):
+            a = decoded[name]
+            scale_t = 1e-3 if tkey == "time_boot_ms" else 1e-6
+            t_raw = a[tkey] * scale_t if tkey == "time_boot_ms" else _unwrap_us(a[tkey]) * scale_t
+            t, keep = _monotonic(t_raw, "imu", nonmono, gaps)
+            # mG -> m/s^2, mrad/s -> rad/s (ArduPilot GCS_Common)
+            acc = np.column_stack([a["xacc"], a["yacc"], a["zacc"]]).astype(float)[keep] * G_MSS / 1000.0
+            gyr = np.column_stack([a["xgyro"], a["ygyro"], a["zgyro"]]).astype(float)[keep] / 1000.0
+            return ImuStream(_frozen(t), _frozen(acc), _frozen(gyr), name)
+    return None
+
+
+def _servo_from_tlog(a, nonmono: dict, gaps: list) -> ServoStream:
+    # port 0 carries channels 1-16 (9-16 in the MAVLink 2 extension fields); other ports are
+    # further banks of 8 that ArduSub does not use.
+    a = a[a["port"] == 0] if (a["port"] == 0).any() else a
+    t, keep = _monotonic(_unwrap_us(a["time_usec"]) * 1e-6, "servo", nonmono, gaps)
+    pwm = np.column_stack([a[f"servo{c}_raw"] for c in range(1, 17)]).astype(float)[keep]
+    return ServoStream(_frozen(t), _frozen(pwm))
+
+
+# ------------------------------------------------------------------------------------------------
+# Dataflash .bin (pymavlink DFReader)
+
+
+def _read_dataflash(path: Path, data: bytes) -> Recording:
+    from pymavlink import DFReader
+
+    try:
+        log = DFReader.DFReader_binary(str(path), zero_time_base=False)
+    except Exception as exc:  # DFReader raises bare exceptions on unusable headers
+        raise RecordingError(f"{path}: not a readable dataflash log: {exc}") from exc
+    rows: dict = {"IMU": [], "BARO": [], "RCOU": [], "ATT": [], "ESC": []}
+    counts: dict = {}
+    used_bytes = 0
+    while True:
+        try:
+            m = log.recv_msg()
+        except Exception:  # a torn last record
+            break
+        if m is None:
+            break
+        name = m.get_type()
+        counts[name] = counts.get(name, 0) + 1
+        fmt = getattr(m, "fmt", None)
+        used_bytes += getattr(fmt, "len", 0) or 0
+        if name in rows:
+            rows[name].append(m.to_dict())
+    nonmono: dict = {}
+    gaps: list = []
+    imu = pressure = servo = attitude = esc = None
+    imu_rows = [r for r in rows["IMU"] if r.get("I", 0) == 0]
+    if imu_rows:
+        t, keep = _monotonic([r["TimeUS"] * 1e-6 for r in imu_rows], "imu", nonmono, gaps)
+        acc = np.array([[r["AccX"], r["AccY"], r["AccZ"]] for r in imu_rows])[keep]
+        gyr = np.array([[r["GyrX"], r["GyrY"], r["GyrZ"]] for r in imu_rows])[keep]
+        imu = ImuStream(_frozen(t), _frozen(acc), _frozen(gyr), "IMU")
+    baro = [r for r in rows["BARO"] if r.get("I", 0) == 1] or [r for r in rows["BARO"] if r.get("I", 0) == 0]
+    if baro:  # ArduSub: instance 1 is the external depth sensor
+        t, keep = _monotonic([r["TimeUS"] * 1e-6 for r in baro], "pressure", nonmono, gaps)
+        pressure = PressureStream(_frozen(t), _frozen(np.array([r["Press"] for r in baro])[keep]), "BARO")
+    if rows["RCOU"]:
+        t, keep = _monotonic([r["TimeUS"] * 1e-6 for r in rows["RCOU"]], "servo", nonmono, gaps)
+        pwm = np.array([[r.get(f"C{c}", 0) for c in range(1, 17)] for r in rows["RCOU"]], float)[keep]
+        servo = ServoStream(_frozen(t), _frozen(pwm))
+    if rows["ATT"]:
+        t, keep = _monotonic([r["TimeUS"] * 1e-6 for r in rows["ATT"]], "attitude", nonmono, gaps)
+        e = np.radians(np.array([[r["Roll"], r["Pitch"], r["Yaw"]] for r in rows["ATT"]]))[keep]
+        e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        rates = np.zeros_like(e)
+        if len(t) > 1:
+            rates = np.gradient(np.unwrap(e, axis=0), t, axis=0)
+        attitude = AttitudeStream(_frozen(t), _frozen(e), _frozen(rates))
+    esc_rows = [r for r in rows["ESC"] if r.get("Instance", 0) < 4]
+    if esc_rows:
+        times = sorted({r["TimeUS"] for r in esc_rows})
+        rpm = np.zeros((len(times), 4))
+        index = {tt: i for i, tt in enumerate(times)}
+        for r in esc_rows:
+            rpm[index[r["TimeUS"]], int(r["Instance"])] = r["RPM"]
+        t, keep = _monotonic(np.array(times) * 1e-6, "esc", nonmono, gaps)
+        esc = EscStream(_frozen(t), _frozen(rpm[keep]))
+    if not counts:
+        raise RecordingError(f"{path}: no dataflash records found")
+    skipped_bytes = max(int(len(data) - used_bytes), 0)
+    skipped_info = Skipped(0, skipped_bytes, 0, 0, nonmono, tuple(gaps))
+    return Recording(str(path), "dataflash", counts, skipped_info, imu, pressure, servo, attitude, esc)
