@@ -100,6 +100,7 @@ def test_clamped_plant_gives_back_the_75_percent_rows(vehicle, design, rig, row)
     assert np.max(np.abs(az.magnitude_db(row, fit.coeffs, w) - az.magnitude_db(row, truth, w))) < 0.1
 
 
+@pytest.mark.slow
 def test_a_noisy_rig_still_beats_the_papers_correlation(vehicle, design, rig):
     rng = np.random.default_rng(11)
     for axis, rec in rig.items():
