@@ -139,3 +139,18 @@ def test_bad_input_gets_a_clear_error(tmp_path, capsys, argv, message):
     assert f"jetloop identify {argv[0]}: error:" in err
     assert message in err
     assert "Traceback" not in err
+
+
+def test_free_decay_reads_a_tlog_recording(tmp_path, vehicle):
+    rec = tmp_path / "heave.tlog"
+    csv_path = tmp_path / "heave.csv"
+    assert main(["identify", "free-decay", "--make-example", str(rec)]) == 0
+    assert main(["identify", "free-decay", "--make-example", str(csv_path)]) == 0
+    for src, name in ((rec, "a"), (csv_path, "b")):
+        assert main(["identify", "free-decay", str(src), "--spring", "400", "--t0", "0.5",
+                     f"--json={tmp_path / (name + '.json')}"]) == 0
+    a = json.loads((tmp_path / "a.json").read_text())
+    b = json.loads((tmp_path / "b.json").read_text())
+    # the recording's SCALED_PRESSURE2 (hPa, float32) carries the same trace as the CSV
+    assert a["omega_n"] == pytest.approx(b["omega_n"], rel=1e-4)
+    assert a["chin"]["added_mass"] == pytest.approx(4.1, rel=0.01)

@@ -55,7 +55,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
     p = sub.add_parser("free-decay", help="spring free decay: omega_n, zeta, added mass, C_D (seed 001)",
                        description="Spring-rig free decay (seed 001 eq. 6-9) and Chin's K_L/K_Q fit of eq. 6.")
-    p.add_argument("data", nargs="?", help="CSV with columns t,y (s, m)")
+    p.add_argument("data", nargs="?", help="CSV with columns t,y (s, m), or a .tlog / .bin recording "
+                   "(y = depth from its pressure sensor)")
     p.add_argument("--mass", type=float, help="body mass m in kg (default: the vehicle's)")
     p.add_argument("--spring", type=float, default=None, help="spring constant K in N/m (required to fit)")
     p.add_argument("--volume", type=float, help="displaced volume V in m^3 (default: the vehicle's)")
@@ -64,11 +65,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--zeta-structural", type=float, default=0.0,
                    help="damping ratio of the rig itself, zeta_s of eq. 8 (default 0)")
     p.add_argument("--axis", choices=AXES, default="heave", help="axis the trace moves along (fragment index)")
+    _window(p)
     _common(p)
 
     p = sub.add_parser("pendulum", help="pendulum free decay: a1, a2, added mass, C_D (seed 001)",
                        description="Pendulum free decay (seed 001 eq. 10-16) and Chin's K_L/K_Q form.")
-    p.add_argument("data", nargs="?", help="CSV with columns t,theta (s, rad)")
+    p.add_argument("data", nargs="?", help="CSV with columns t,theta (s, rad), or a .tlog / .bin "
+                   "recording (theta = its ATTITUDE roll or pitch, see --angle)")
+    p.add_argument("--angle", choices=("roll", "pitch"), default="pitch",
+                   help="attitude angle of a recording that is the swing angle (default pitch)")
     p.add_argument("--mass", type=float, help="body mass m in kg (required to fit)")
     p.add_argument("--volume", type=float, help="body volume V in m^3 (required to fit)")
     p.add_argument("--length", type=float, help="pendulum length r in m (required to fit)")
@@ -76,6 +81,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--rho", type=float, help="water density kg/m^3 (default: the vehicle's)")
     p.add_argument("--g", type=float, help="gravity m/s^2 (default: the vehicle's)")
     p.add_argument("--axis", choices=AXES, default="surge", help="axis the body swings along (fragment index)")
+    _window(p)
     _common(p)
 
     p = sub.add_parser("tables", help="added mass vs depth and damping vs speed tables (seed 003)",
@@ -120,6 +126,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     _common(p, example=False)
 
 
+def _window(p) -> None:
+    p.add_argument("--t0", type=float, help="use the trace from this time on (s), e.g. the release")
+    p.add_argument("--t1", type=float, help="use the trace up to this time (s)")
+
+
 def _common(p, example: bool = True) -> None:
     p.add_argument("--vehicle", help="vehicle TOML (default: the reference vehicle asr4)")
     p.add_argument("--json", metavar="OUT.json", help="write the results and the fragment as JSON")
@@ -139,7 +150,7 @@ def run(args) -> int:
     try:
         vehicle = load_vehicle(args.vehicle)
         return handler(args, vehicle)
-    except (InputError, VehicleFileError, ValueError, OSError) as exc:
+    except (InputError, VehicleFileError, ValueError, OSError) as exc:  # RecordingError is a ValueError
         msg = str(exc) if not isinstance(exc, OSError) else f"{getattr(exc, 'filename', '') or ''}: {exc.strerror or exc}"
         print(f"jetloop identify {args.method}: error: {msg}", file=sys.stderr)
         return 2
@@ -340,6 +351,54 @@ def _plot_thrust(path, d, fit, rho, D):
 # ------------------------------------------------------------------------------------------------
 # free decay (spring)
 
+def _trace(args, vehicle, name: str) -> dict:
+    """{"t", name} from a CSV, or from a recording: depth (pressure) for y, roll / pitch for theta."""
+    path = args.data
+    if path is None:
+        raise InputError("no input file given (or use --make-example PATH)")
+    if Path(path).suffix.lower() in (".tlog", ".bin"):
+        from ground.recording import read_recording
+
+        rec = read_recording(path)
+        if name == "y":
+            if rec.pressure is None or len(rec.pressure.time_s) == 0:
+                raise InputError(f"{path}: no pressure stream (SCALED_PRESSURE2 / BARO) to read depth from")
+            e = vehicle.environment
+            t = np.asarray(rec.pressure.time_s, float)
+            y = (np.asarray(rec.pressure.press_abs_pa, float) - e.p_atm) / (e.rho * e.g)
+        else:
+            if rec.attitude is None or len(rec.attitude.time_s) == 0:
+                raise InputError(f"{path}: no ATTITUDE stream to read the swing angle from")
+            t = np.asarray(rec.attitude.time_s, float)
+            y = np.asarray(rec.attitude.euler_rad, float)[:, 0 if args.angle == "roll" else 1]
+        d = {"t": t, name: y}
+    else:
+        d = read_columns(path, ("t", name))
+    sel = np.ones(d["t"].size, bool)
+    if args.t0 is not None:
+        sel &= d["t"] >= args.t0
+    if args.t1 is not None:
+        sel &= d["t"] <= args.t1
+    if sel.sum() < 20:
+        raise InputError(f"{path}: {int(sel.sum())} samples in the --t0/--t1 window; a free decay needs at least 20")
+    return {k: v[sel] for k, v in d.items()}
+
+
+def _write_tlog_depth(path, t, press_pa) -> None:
+    """A minimal recording of the pressure stream (HEARTBEAT + SCALED_PRESSURE2)."""
+    from hil.tlog import FIXED_EPOCH_US, TlogWriter
+    from onboard import mavlink_codec as codec
+    from onboard.sensors import PressureSample
+
+    with TlogWriter(path) as w:
+        next_hb = 0.0
+        for ti, p in zip(t, press_pa):
+            if ti >= next_hb:
+                w.write(codec.heartbeat(), FIXED_EPOCH_US + int(round(ti * 1e6)))
+                next_hb += 1.0
+            w.write(codec.encode_pressure(PressureSample(float(ti), float(p))), FIXED_EPOCH_US + int(round(ti * 1e6)))
+
+
 def _hydro_fragment(vehicle, axis: str, added=None, k_l=None, k_q=None) -> dict:
     i = ("surge", "sway", "heave").index(axis)
     out = {}
@@ -357,10 +416,13 @@ def _free_decay(args, vehicle) -> int:
 
     rho = _positive("--rho", args.rho if args.rho is not None else vehicle.environment.rho)
     if args.make_example:
-        t, y, K = _hil_spring_trace(vehicle, args.spring if args.spring is not None else 400.0, args.seed)
-        write_columns(args.make_example, {"t": t, "y": y},
-                      f"HIL plant heave free decay on a spring rig K = {K} N/m (vehicle {vehicle.name}, "
-                      "surface and wall proximity off), depth from the pressure sensor\nt s, y m")
+        t, y, K, press = _hil_spring_trace(vehicle, args.spring if args.spring is not None else 400.0, args.seed)
+        if Path(args.make_example).suffix.lower() == ".tlog":
+            _write_tlog_depth(args.make_example, t, press)
+        else:
+            write_columns(args.make_example, {"t": t, "y": y},
+                          f"HIL plant heave free decay on a spring rig K = {K} N/m (vehicle {vehicle.name}, "
+                          "surface and wall proximity off), depth from the pressure sensor\nt s, y m")
         print(f"wrote {args.make_example}: {t.size} samples; fit with --spring {K}")
         return 0
     _need(args, "spring")
@@ -368,7 +430,7 @@ def _free_decay(args, vehicle) -> int:
     volume = _positive("--volume", args.volume if args.volume is not None else vehicle.body.volume)
     length = _positive("--length", args.length if args.length is not None else 2 * vehicle.body.radius)
     K = _positive("--spring", args.spring)
-    d = read_columns(args.data, ("t", "y"))
+    d = _trace(args, vehicle, "y")
     f = fd.spring_free_decay(d["t"], d["y"], mass, K, volume, length, rho, args.zeta_structural)
     results = {
         "omega_n": f.omega_n_rad_s, "zeta": f.zeta, "added_mass": f.added_mass_kg, "cm": f.cm, "cd": f.cd,
@@ -405,8 +467,9 @@ def _hil_spring_trace(vehicle, K: float, seed: int, amplitude: float = 0.05, dur
     plant.state[2] += amplitude
     s = plant.advance(duration)
     t = np.array([q.time_s for q in s.pressure])
-    y = np.array([depth_from_pressure(q.press_abs_pa, v) for q in s.pressure])
-    return t, y, K
+    press = np.array([q.press_abs_pa for q in s.pressure])
+    y = np.array([depth_from_pressure(q, v) for q in press])
+    return t, y, K, press
 
 
 def _plot_spring(path, d, f, mass, K):
@@ -461,7 +524,7 @@ def _pendulum(args, vehicle) -> int:
               f"--length {e['length']} --area {e['area']}")
         return 0
     _need(args, "mass", "volume", "length", "area")
-    d = read_columns(args.data, ("t", "theta"))
+    d = _trace(args, vehicle, "theta")
     f = fd.pendulum_free_decay(d["t"], d["theta"], args.mass, args.volume, args.length, args.area, rho, g)
     results = {
         "a1": f.a1, "a2": f.a2, "added_mass": f.added_mass_kg, "cm": f.cm, "cd": f.cd, "rmse": f.rmse_rad,
