@@ -20,7 +20,9 @@ Pure math: arrays in, arrays out; no clock, no files.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -36,7 +38,7 @@ STATE_PIECES = ("pos", "quat", "nu", "n", "alpha", "beta", "transient")
 # ------------------------------------------------------------------------------------------------
 # Compiled kernel
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True)  # cached on disk below, keyed on this file and onboard/model.py
 def _run(states, schedule, params, dt, hold, n_steps, every, idx, record, out):
     """Step every vehicle `n_steps` times; record x[idx] at step 0 and every `every` steps.
 
@@ -59,6 +61,46 @@ def _run(states, schedule, params, dt, hold, n_steps, every, idx, record, out):
                     record[i, s, j] = x[idx[j]]
         for j in range(x.shape[0]):
             out[i, j] = x[j]
+
+
+def _cache_keyed_on(dispatcher, *sources: Path) -> None:
+    """Cache `dispatcher` on disk, invalid once its own file or any of `sources` changes.
+
+    numba's `cache=True` checks only the file of the function it compiles, but the kernel above
+    compiles `model.rk4_step` into itself: after an edit of onboard/model.py a plain cached kernel
+    would go on running the old physics. Here the cache's source stamp also holds the hashes of
+    `sources`. If numba's caching internals move, the kernel is simply not cached (compiled once
+    per process), never stale.
+    """
+    try:
+        from numba.core.caching import CompileResultCacheImpl, FunctionCache
+
+        digests = tuple(hashlib.sha256(Path(f).read_bytes()).hexdigest() for f in sources)
+
+        class _Stamped:
+            def __init__(self, inner):
+                self._inner = inner
+
+            def __getattr__(self, name):
+                return getattr(self._inner, name)
+
+            def get_source_stamp(self):
+                return (self._inner.get_source_stamp(), digests)
+
+        class _Impl(CompileResultCacheImpl):
+            def __init__(self, py_func):
+                super().__init__(py_func)
+                self._locator = _Stamped(self._locator)
+
+        class _Cache(FunctionCache):
+            _impl_class = _Impl
+
+        dispatcher._cache = _Cache(dispatcher.py_func)
+    except Exception:  # pragma: no cover - a numba without these internals, or no writable cache dir
+        pass
+
+
+_cache_keyed_on(_run, Path(model.__file__))
 
 
 # ------------------------------------------------------------------------------------------------

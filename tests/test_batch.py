@@ -227,3 +227,13 @@ def test_benchmark_baseline_is_the_same_model_interpreted(vehicle):
         x_c = model.rk4_step(x_c, u, p, 0.001)
     assert np.abs(x_c[model.StateLayout(4).alpha] - x0[model.StateLayout(4).alpha]).max() > 0.05  # joints slew
     np.testing.assert_allclose(x_py, x_c, rtol=0, atol=1e-12)
+
+
+def test_kernel_cache_is_invalidated_by_a_model_edit():
+    """numba's own cache looks only at hil/batch.py; ours also holds onboard/model.py's hash."""
+    import hashlib
+    from pathlib import Path
+
+    digest = hashlib.sha256(Path(model.__file__).read_bytes()).hexdigest()
+    stamp = batch._run._cache._impl.locator.get_source_stamp()
+    assert stamp[1] == (digest,)
