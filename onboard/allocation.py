@@ -240,7 +240,7 @@ def evaluate(n, alpha, beta, nu_r, pos, e1, tp):
 
 
 @njit(cache=True)
-def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, u, ax):
+def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, u, ax, inf):
     """Fill the QP data of one step (q, l, u, A values); return T_max and the joint windows.
 
     Window: da in [max(-step, -lim - a0), min(step, lim - a0)], same for beta (rate * dt and the
@@ -267,10 +267,10 @@ def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, 
         kb = max(kk[2] * kk[2], kk[3] * kk[3])
         r = 5 * i
         l[r], u[r] = 0.0, t_max[i] / math.sqrt(1.0 + ka + kb)
-        l[r + 1], u[r + 1] = -np.inf, 0.0
-        l[r + 2], u[r + 2] = 0.0, np.inf
-        l[r + 3], u[r + 3] = -np.inf, 0.0
-        l[r + 4], u[r + 4] = 0.0, np.inf
+        l[r + 1], u[r + 1] = -inf, 0.0
+        l[r + 2], u[r + 2] = 0.0, inf
+        l[r + 3], u[r + 3] = -inf, 0.0
+        l[r + 4], u[r + 4] = 0.0, inf
         for j in range(3):
             o = (3 * i + j) * 5
             dj = F[i, 0, j]
@@ -473,6 +473,10 @@ class _Base:
         """Make `allocation` the previous one (the change reference and the fallback)."""
         self.previous = allocation
 
+    def reset(self) -> None:
+        """Forget the previous command (a new start: no change reference, no fallback command)."""
+        self.previous = None
+
 
 # ------------------------------------------------------------------------------------------------
 # Baseline: fixed mixing (ArduSub-style)
@@ -541,9 +545,15 @@ class QpAllocator(_Base):
         self._l = np.zeros(m)
         self._u = np.zeros(m)
         self._ax = np.zeros(3 * k * self.ROWS)
+        try:
+            self._inf = float(osqp.OSQP().constant("OSQP_INFTY"))  # OSQP's "no bound"
+        except Exception:  # pragma: no cover - other osqp versions
+            self._inf = 1e30
         z = np.zeros(k)
         plan_step(np.zeros(6), z, z, np.zeros(6), self.geo.position, self.geo.e1, self.geo.tp,
-                  self.geo.angle_limit, 0.0, self._BtW, 0.0, np.zeros(3 * k), self._q, self._l, self._u, self._ax)
+                  self.geo.angle_limit, 0.0, self._BtW, 0.0, np.zeros(3 * k), self._q, self._l, self._u, self._ax,
+                  self._inf)
+        self._A_pattern = (indices, indptr, (m, 3 * k))
         A = sp.csc_matrix((self._ax.copy(), indices, indptr), shape=(m, 3 * k))
         self._solver = osqp.OSQP()
         self._solver.setup(
@@ -553,6 +563,18 @@ class QpAllocator(_Base):
             adaptive_rho=True, adaptive_rho_interval=25,
         )
         self.setups = 1  # the workspace is built once here and only updated afterwards
+
+    def constraints(self, alpha, beta, nu_r=None):
+        """(A, l, u, T_max): the step's polytope l <= A f <= u (dense) at these joint angles."""
+        g = self.geo
+        a0 = np.clip(np.asarray(alpha, float), -g.angle_limit, g.angle_limit)
+        b0 = np.clip(np.asarray(beta, float), -g.angle_limit, g.angle_limit)
+        nu = np.zeros(6) if nu_r is None else np.asarray(nu_r, float)
+        q, l, u, ax = np.zeros(3 * self.k), np.zeros_like(self._l), np.zeros_like(self._u), np.zeros_like(self._ax)
+        t_max, _ = plan_step(np.zeros(6), a0, b0, nu, g.position, g.e1, g.tp, g.angle_limit,
+                             self.window_step_rad(), self._BtW, 0.0, np.zeros(3 * self.k), q, l, u, ax, self._inf)
+        indices, indptr, shape = self._A_pattern
+        return sp.csc_matrix((ax, indices, indptr), shape=shape).toarray(), l, u, t_max
 
     def window_step_rad(self) -> float:
         """Joint travel allowed per step, rate_limit * dt (also bounded by the angle limits)."""
@@ -566,11 +588,10 @@ class QpAllocator(_Base):
         finite = bool(np.all(np.isfinite(tau)))
         t_max, win = plan_step(tau if finite else np.zeros(6), a0, b0, nu, g.position, g.e1, g.tp,
                                g.angle_limit, self.window_step_rad(), self._BtW, self._wc, f_prev,
-                               self._q, self._l, self._u, self._ax)
+                               self._q, self._l, self._u, self._ax, self._inf)
         if not finite:
             return self._fallback(tau, a0, b0, nu, "non-finite demand", 0.0, 0, t_max, commit)
-        self._solver.update(q=self._q, l=self._l, u=self._u, Ax=self._ax)
-        x, info = self._solve()
+        x, info = self._update_and_solve()
         elapsed = time.perf_counter() - t_start
         status = str(info.status)
         ok = info.status_val in _SOLVED
@@ -586,13 +607,20 @@ class QpAllocator(_Base):
             self.commit(out)
         return out
 
-    def _solve(self):
-        """OSQP solve -> (x, info). The compiled solver is called directly where the wrapper
-        exposes it: the Python wrapper builds a result namespace that costs more than the solve."""
+    def _update_and_solve(self):
+        """Refill q, l, u and A's values, solve from the previous solution -> (x, info).
+
+        The compiled workspace is called directly where the osqp wrapper exposes it (osqp 1.x):
+        the wrapper's bookkeeping (bound clipping, derivative cache, a result namespace) costs
+        more than this problem's solve. Bounds are already within +-OSQP_INFTY (plan_step).
+        """
         inner = getattr(self._solver, "_solver", None)
-        if inner is not None and hasattr(inner, "solution") and hasattr(inner, "info"):
+        if inner is not None and all(hasattr(inner, a) for a in ("update_data_vec", "update_data_mat", "solution")):
+            inner.update_data_vec(q=self._q, l=self._l, u=self._u)
+            inner.update_data_mat(P_x=None, P_i=None, A_x=self._ax, A_i=None)
             inner.solve()
             return np.array(inner.solution.x), inner.info
+        self._solver.update(q=self._q, l=self._l, u=self._u, Ax=self._ax)  # pragma: no cover
         res = self._solver.solve(raise_error=False)  # pragma: no cover - other osqp versions
         return res.x, res.info
 

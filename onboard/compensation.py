@@ -22,13 +22,15 @@ plan, allocate demand - prediction, repeat, so that achieved wrench + transient 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.signal import cont2discrete, tf2ss
 
 from . import model
-from .allocation import Allocation, JetGeometry, jet_frames
+from .allocation import Allocation, JetGeometry
 from .vehicle import Vehicle
 
 ROWS = model.TRANSIENT_ROWS  # ("f1x", "f1y", "m1z", "f2x", "f2z")
@@ -42,23 +44,76 @@ def discretise_row(row: str, coeffs, dt_s: float, method: str = "zoh"):
     return Ad, Bd.reshape(-1), Cd.reshape(-1), float(np.asarray(Dd).reshape(-1)[0])
 
 
+@njit(cache=True)
+def _servo_motion(angle, command, dt_s, time_constant, rate_limit, limit):
+    k = angle.shape[0]
+    a_end = np.empty(k)
+    rate = np.empty(k)
+    band = rate_limit * time_constant
+    for i in range(k):
+        target = min(max(command[i], -limit), limit)
+        e0 = target - angle[i]
+        mag = abs(e0)
+        t_slew = max(mag - band, 0.0) / rate_limit  # time spent at the rate limit
+        if t_slew >= dt_s:
+            e_end = mag - rate_limit * dt_s
+        else:
+            e_end = min(mag, band) * math.exp(-(dt_s - t_slew) / time_constant)
+        a_end[i] = target - (e_end if e0 >= 0.0 else -e_end)
+        rate[i] = (a_end[i] - angle[i]) / dt_s
+    return a_end, rate
+
+
 def servo_motion(angle, command, dt_s, time_constant, rate_limit, limit):
     """Joint angle after dt_s and its mean rate, exactly, for spec `servo_lag`:
 
     a' = clip((clip(a_cmd) - a) / tau, +-rate_limit). While |error| > rate_limit * tau the joint
     slews at the rate limit; after that the error decays as exp(-t / tau).
     """
-    a = np.asarray(angle, float)
-    target = np.clip(np.asarray(command, float), -limit, limit)
-    e0 = target - a
-    mag = np.abs(e0)
-    band = rate_limit * time_constant
-    t_slew = np.maximum(mag - band, 0.0) / rate_limit  # time spent at the rate limit
-    slew_only = t_slew >= dt_s
-    rest = np.maximum(dt_s - t_slew, 0.0)
-    e_end = np.where(slew_only, mag - rate_limit * dt_s, np.minimum(mag, band) * np.exp(-rest / time_constant))
-    a_end = target - np.sign(e0) * e_end
-    return a_end, (a_end - a) / dt_s
+    return _servo_motion(np.asarray(angle, dtype=np.float64), np.asarray(command, dtype=np.float64),
+                         float(dt_s), float(time_constant), float(rate_limit), float(limit))
+
+
+@njit(cache=True)
+def _predict(Ad, Bd, Cd, z0, ra, rb, T, gain, a_mid, b_mid, e1, pos):
+    """One step of every unit's five rows and the spec-4.1 transient wrench of their step means.
+
+    z1 = Ad z0 + Bd u (ZOH), y = (C z0 + C z1) / 2; drives u = (|a'|, a', a', |b'|, b');
+    with g = gain T: force = (max(T - g (y1x + y2x), 0) - T) d + g y1y e_alpha + g y2z e_beta,
+    moment r x force - g y1z about body z.
+    """
+    k = z0.shape[0]
+    z1 = np.empty_like(z0)
+    y = np.empty((k, 5))
+    force = np.empty((k, 3))
+    mz = np.empty(k)
+    wrench = np.zeros(6)
+    for i in range(k):
+        drive = (abs(ra[i]), ra[i], ra[i], abs(rb[i]), rb[i])
+        for r in range(5):
+            y0 = 0.0
+            y1 = 0.0
+            for j in range(4):
+                acc = Bd[r, j] * drive[r]
+                for m in range(4):
+                    acc += Ad[r, j, m] * z0[i, r, m]
+                z1[i, r, j] = acc
+                y0 += Cd[r, j] * z0[i, r, j]
+                y1 += Cd[r, j] * acc
+            y[i, r] = 0.5 * (y0 + y1)
+        Ti = max(T[i], 0.0)
+        g = gain * Ti
+        F = model.jet_frame(a_mid[i], b_mid[i], e1[i, 0], e1[i, 1])
+        dax = max(Ti - g * (y[i, 0] + y[i, 3]), 0.0) - Ti
+        for c in range(3):
+            force[i, c] = dax * F[0, c] + g * y[i, 1] * F[1, c] + g * y[i, 4] * F[2, c]
+            wrench[c] += force[i, c]
+        m0, m1, m2 = model.cross(pos[i, 0], pos[i, 1], pos[i, 2], force[i, 0], force[i, 1], force[i, 2])
+        mz[i] = -g * y[i, 2]
+        wrench[3] += m0
+        wrench[4] += m1
+        wrench[5] += m2 + mz[i]
+    return wrench, force, mz, y, z1
 
 
 @dataclass(frozen=True)
@@ -89,7 +144,7 @@ class TransientCompensator:
     With `azimuth_transient` or `servo_lag` off the prediction is zero, as in the spec.
     """
 
-    def __init__(self, v: Vehicle, dt_s: float, alpha_rad=None, beta_rad=None, method: str = "zoh"):
+    def __init__(self, v: Vehicle, dt_s: float, alpha_rad=None, beta_rad=None):
         if not (isinstance(dt_s, (int, float)) and np.isfinite(dt_s) and dt_s > 0):
             raise ValueError(f"dt_s: expected the control period in seconds (> 0), got {dt_s!r}")
         self.vehicle = v
@@ -99,10 +154,11 @@ class TransientCompensator:
         at = v.effects.azimuth_transient
         self.active = bool(at.enabled and v.effects.on("servo_lag"))
         self.gain = at.gain_per_newton if self.active else 0.0
-        mats = [discretise_row(r, getattr(at, r), self.dt_s, method) for r in ROWS]
-        self.Ad = np.stack([m[0] for m in mats])  # (5, 4, 4)
-        self.Bd = np.stack([m[1] for m in mats])  # (5, 4)
-        self.Cd = np.stack([m[2] for m in mats])  # (5, 4)
+        # ZOH: the rates are held over a step, and the rows are strictly proper, so Dd = 0.
+        mats = [discretise_row(r, getattr(at, r), self.dt_s, "zoh") for r in ROWS]
+        self.Ad = np.ascontiguousarray(np.stack([m[0] for m in mats]))  # (5, 4, 4)
+        self.Bd = np.ascontiguousarray(np.stack([m[1] for m in mats]))  # (5, 4)
+        self.Cd = np.ascontiguousarray(np.stack([m[2] for m in mats]))  # (5, 4)
         s = v.servo
         self.servo = (s.time_constant, s.rate_limit, s.angle_limit)
         self.reset(alpha_rad, beta_rad)
@@ -130,28 +186,18 @@ class TransientCompensator:
 
     def _predict(self, ra, rb, thrust_n, a0, b0, a1, b1) -> TransientPrediction:
         k = self.k
+        ra = np.ascontiguousarray(ra, dtype=np.float64)
+        rb = np.ascontiguousarray(rb, dtype=np.float64)
         if not self.active:
             ra, rb = np.zeros(k), np.zeros(k)
-        # Drives (spec 4.1): F1x by |alpha'|, F1y and M1z by alpha', F2x by |beta'|, F2z by beta'.
-        u = np.column_stack([np.abs(ra), ra, ra, np.abs(rb), rb])  # (k, 5)
-        z0 = self.state
-        z1 = np.einsum("rij,krj->kri", self.Ad, z0) + self.Bd[None, :, :] * u[:, :, None]
-        # Step-mean output (trapezoid of the ZOH samples at both ends of the step).
-        y = 0.5 * (np.einsum("ri,kri->kr", self.Cd, z0) + np.einsum("ri,kri->kr", self.Cd, z1))
-        T = np.maximum(np.asarray(thrust_n, float), 0.0)
-        g = self.gain * T
-        F = jet_frames(0.5 * (np.asarray(a0, float) + a1), 0.5 * (np.asarray(b0, float) + b1), self.geo.e1)
-        d, ea, eb = F[:, 0], F[:, 1], F[:, 2]
-        d_axial = np.maximum(T - g * (y[:, 0] + y[:, 3]), 0.0) - T
-        force = d_axial[:, None] * d + (g * y[:, 1])[:, None] * ea + (g * y[:, 4])[:, None] * eb
-        mz = -g * y[:, 2]
-        wrench = np.zeros(6)
-        wrench[:3] = force.sum(axis=0)
-        wrench[3:] = np.cross(self.geo.position, force).sum(axis=0)
-        wrench[5] += mz.sum()
+        a_mid = 0.5 * (np.asarray(a0, float) + a1)
+        b_mid = 0.5 * (np.asarray(b0, float) + b1)
+        T = np.ascontiguousarray(thrust_n, dtype=np.float64)
+        wrench, force, mz, y, z1 = _predict(self.Ad, self.Bd, self.Cd, self.state, ra, rb, T, self.gain,
+                                            a_mid, b_mid, self.geo.e1, self.geo.position)
         return TransientPrediction(
-            wrench_n=wrench, force_body_n=force, moment_z_nm=mz, rows=y, alpha_rate_rad_s=np.asarray(ra, float),
-            beta_rate_rad_s=np.asarray(rb, float), next_state=z1, next_alpha_rad=np.asarray(a1, float),
+            wrench_n=wrench, force_body_n=force, moment_z_nm=mz, rows=y, alpha_rate_rad_s=ra,
+            beta_rate_rad_s=rb, next_state=z1, next_alpha_rad=np.asarray(a1, float),
             next_beta_rad=np.asarray(b1, float),
         )
 
