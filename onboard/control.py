@@ -40,7 +40,7 @@ achieved wrench the allocator reports (`step(..., achieved=...)`) or else from t
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
