@@ -18,11 +18,13 @@ from __future__ import annotations
 import select
 import socket
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 HEADER_V1_MIN = mavlink.HEADER_LEN_V1 + 2
+MAX_DATAGRAM = 60_000  # bytes per UDP datagram when a batch is flushed
 
 
 class LinkError(ValueError):
@@ -144,6 +146,7 @@ class Link:
         self.mav = mavlink.MAVLink(None, srcSystem=source_system, srcComponent=source_component)
         self.mav.robust_parsing = True
         self._ready: deque = deque()
+        self._held: list | None = None  # packets waiting for the end of a batch
         self.bytes_in = 0
         self.good_bytes = 0
         self.bad_packets = 0
@@ -173,15 +176,45 @@ class Link:
     def send(self, msg) -> bytes:
         """Send one message; returns its wire bytes (for a recording). Never raises on IO errors."""
         buf = self.pack(msg)
-        if self._io.write(buf):
+        if self._held is not None:
+            self._held.append(buf)
+        elif self._io.write(buf):
             self.packets_out += 1
         else:
             self.send_failures += 1
         return buf
 
+    @contextmanager
+    def batch(self):
+        """Messages sent inside go out together: one datagram per frame on UDP (MAVLink is a byte
+        stream, so a datagram may carry several packets), one write on a serial line."""
+        if self._held is not None:  # already batching: the outer batch flushes
+            yield self
+            return
+        self._held = []
+        try:
+            yield self
+        finally:
+            held, self._held = self._held, None
+            chunk: list = []
+            size = 0
+            for buf in held + [None]:  # whole packets per datagram, at most MAX_DATAGRAM bytes
+                if buf is None or (chunk and size + len(buf) > MAX_DATAGRAM):
+                    if chunk and not self._io.write(b"".join(chunk)):
+                        self.send_failures += len(chunk)
+                    else:
+                        self.packets_out += len(chunk)
+                    chunk, size = [], 0
+                if buf is not None:
+                    chunk.append(buf)
+                    size += len(buf)
+
     def write_raw(self, data: bytes) -> None:
-        """Put raw bytes on the line (tests and fault injection)."""
-        self._io.write(bytes(data))
+        """Put raw bytes on the line (another sender's packets, tests, fault injection)."""
+        if self._held is not None:
+            self._held.append(bytes(data))
+        else:
+            self._io.write(bytes(data))
 
     # -- receiving ----------------------------------------------------------------------------
     def recv(self, timeout_s: float = 0.0):

@@ -1,0 +1,270 @@
+"""The plant's MAVLink endpoint: plays the autopilot's sensor side for an onboard controller.
+
+Each control period the endpoint advances the plant, sends what an ArduSub autopilot would
+(HEARTBEAT at 1 Hz; SCALED_PRESSURE2, ATTITUDE, HIGHRES_IMU at their sensor rates; ESC
+telemetry every period) and then SYSTEM_TIME, whose time_boot_ms marks "everything up to this
+instant has been sent". It applies the actuator commands it receives: HIL_ACTUATOR_CONTROLS
+(normalised: jets 0..1, joints -1..1, onboard.pwm) or, with `actuators="pwm"`, the PWM of
+SERVO_OUTPUT_RAW through the vehicle's [pwm] maps.
+
+Modes:
+- lock-step: after the marker of instant t_k the plant waits for the command stamped t_k
+  (HIL_ACTUATOR_CONTROLS.time_usec, or SERVO_OUTPUT_RAW.time_usec) before it advances to
+  t_k+1. Nothing depends on the wall clock, so the same seed gives the same recording byte for
+  byte, as fast as the CPU allows.
+- real time: the plant follows the wall clock and applies whatever command has arrived.
+
+Ground setpoints of a scripted mission are injected in vehicle time, as a ground station's
+messages routed through the autopilot (system 255), so a mission is deterministic in lock-step.
+The recording (.tlog, hil.tlog) holds everything sent and received, stamped with vehicle time,
+plus the pool's motion-capture truth (ATT_POS_MOCAP) at the attitude rate, never sent.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from onboard import mavlink_codec as codec
+from onboard.pwm import command_to_pwm, normalised_to_command, pwm_to_command
+from onboard.vehicle import Vehicle
+
+GCS_SYSTEM = 255
+GCS_COMPONENT = 190
+SERVO_TIME_WRAP = 1 << 32
+
+
+class EndpointError(RuntimeError):
+    """The controller on the other side stopped answering (lock-step) or never appeared."""
+
+
+@dataclass(frozen=True)
+class Faults:
+    """What goes wrong on purpose: IMU silence windows and garbage bytes on the link."""
+
+    imu_dropouts_s: tuple = ()  # ((t0, t1), ...): no IMU message with t0 <= t < t1
+    garbage_times_s: tuple = ()  # instants at which `garbage_bytes` random bytes are written
+    garbage_bytes: int = 200
+
+
+@dataclass
+class EndpointStats:
+    periods: int = 0
+    commands_applied: int = 0
+    commands_late: int = 0  # real time: periods that ended with no new command
+    resends: int = 0  # lock-step: markers sent again after a reply timeout
+    stale_replies: int = 0  # commands stamped for an earlier period
+    bad_commands: int = 0  # non-finite or malformed commands, ignored
+    sent: dict = field(default_factory=dict)
+    received: dict = field(default_factory=dict)
+
+
+class HilEndpoint:
+    """Plant + link: `start()`, then `step()` per control period, or `run(duration_s)`."""
+
+    def __init__(
+        self,
+        vehicle: Vehicle,
+        link,
+        plant,
+        control_period_s: float = 0.01,
+        lockstep: bool = True,
+        actuators: str = "hil",
+        setpoints=(),
+        faults: Faults = Faults(),
+        tlog=None,
+        reply_timeout_s: float = 0.5,
+        give_up_s: float = 10.0,
+        seed: int = 0,
+        on_period=None,
+    ):
+        if actuators not in ("hil", "pwm"):
+            raise ValueError(f"actuators must be 'hil' or 'pwm', got {actuators!r}")
+        self.vehicle = vehicle
+        self.link = link
+        self.plant = plant
+        self.period_s = float(control_period_s)
+        self.lockstep = lockstep
+        self.actuators = actuators
+        self.setpoints = sorted(setpoints, key=lambda p: p[0])  # [(t_s, pymavlink message)]
+        self._next_setpoint = 0
+        self.faults = faults
+        self.tlog = tlog
+        self.reply_timeout_s = reply_timeout_s
+        self.give_up_s = give_up_s
+        self.on_period = on_period
+        self.k = 0
+        self.stats = EndpointStats()
+        self.truth: list = []  # TruthSample at the IMU instants
+        self.commands: list = []  # (t_s, command vector applied from t_s)
+        self._gcs = mavlink.MAVLink(None, srcSystem=GCS_SYSTEM, srcComponent=GCS_COMPONENT)
+        self._rng = np.random.default_rng(seed + 7919)
+        self._garbage_due = sorted(faults.garbage_times_s)
+        self._next_heartbeat_s = 0.0
+        self._mocap_period_s = 1.0 / vehicle.sensors.attitude_rate
+        self._next_mocap_s = 0.0
+        self._answered_us = -1
+        self._pwm = command_to_pwm(vehicle, plant.command)
+        self._wall0 = None
+
+    # -- time ----------------------------------------------------------------------------------
+    @property
+    def time_s(self) -> float:
+        return self.k * self.period_s
+
+    def _stamp_us(self, t_s: float) -> int:
+        from hil.tlog import FIXED_EPOCH_US
+
+        return FIXED_EPOCH_US + int(round(t_s * 1e6))
+
+    # -- recording -----------------------------------------------------------------------------
+    def _record(self, packet: bytes, t_s: float, msg_type: str) -> None:
+        if self.tlog is not None:
+            self.tlog.write_packet(packet, self._stamp_us(t_s), msg_type)
+
+    def _send(self, msg, t_s: float) -> None:
+        packet = self.link.send(msg)
+        name = msg.get_type()
+        self.stats.sent[name] = self.stats.sent.get(name, 0) + 1
+        self._record(packet, t_s, name)
+
+    def _send_as_gcs(self, msg, t_s: float) -> None:
+        packet = bytes(msg.pack(self._gcs))
+        self._gcs.seq = (self._gcs.seq + 1) % 256
+        self.link.write_raw(packet)
+        name = msg.get_type()
+        self.stats.sent[name] = self.stats.sent.get(name, 0) + 1
+        self._record(packet, t_s, name)
+
+    # -- start ---------------------------------------------------------------------------------
+    def start(self, wait_s: float = 10.0) -> None:
+        """Wait until the controller speaks (a udpin link learns its address from it)."""
+        deadline = time.monotonic() + wait_s
+        while self.link.endpoint.kind == "udpin" and getattr(self.link._io, "peer", None) is None:
+            if time.monotonic() > deadline:
+                raise EndpointError(f"no controller spoke on {self.link.connection} within {wait_s:.0f} s")
+            m = self.link.recv(0.1)
+            if m is not None:
+                self._handle(m, self.time_s)
+        self._wall0 = time.monotonic()
+
+    # -- one control period ----------------------------------------------------------------------
+    def step(self) -> None:
+        """Send everything up to t_k, take the command for t_k, advance the plant to t_k+1."""
+        t = self.time_s
+        samples = self.plant.advance(t + 1e-9)
+        self.truth.extend(samples.truth)
+        with self.link.batch():  # one datagram per frame
+            self._emit(t, samples)
+        if self.lockstep:
+            self._await_command(t)
+        else:
+            self._drain_until(self._wall0 + t + self.period_s, t)
+        self.stats.periods += 1
+        if self.on_period is not None:
+            self.on_period(self)
+        self.k += 1
+
+    def run(self, duration_s: float, stop=None) -> None:
+        """Periods until `duration_s` of vehicle time (or until `stop()` is true)."""
+        if self._wall0 is None:
+            self.start()
+        n = int(round(duration_s / self.period_s))
+        while self.k < n and not (stop is not None and stop()):
+            self.step()
+
+    def _emit(self, t: float, samples) -> None:
+        if t + 1e-9 >= self._next_heartbeat_s:
+            self._send(codec.heartbeat(armed=True), t)
+            self._next_heartbeat_s += 1.0
+        while self._next_setpoint < len(self.setpoints) and self.setpoints[self._next_setpoint][0] <= t + 1e-9:
+            self._send_as_gcs(self.setpoints[self._next_setpoint][1], t)
+            self._next_setpoint += 1
+        for s in samples.pressure:
+            self._send(codec.encode_pressure(s), s.time_s)
+        for s in samples.attitude:
+            self._send(codec.encode_attitude(s), s.time_s)
+        for s in samples.imu:
+            if not any(t0 <= s.time_s < t1 for t0, t1 in self.faults.imu_dropouts_s):
+                self._send(codec.encode_imu(s), s.time_s)
+        for msg in codec.encode_actuators(self.plant.actuators(self._pwm))[1:]:  # ESC rpm only
+            self._send(msg, t)
+        if self.tlog is not None and t + 1e-9 >= self._next_mocap_s:
+            self._next_mocap_s += self._mocap_period_s
+            x = self.plant.state
+            mocap = mavlink.MAVLink_att_pos_mocap_message(
+                codec.time_usec(t), [float(c) for c in x[3:7]], float(x[0]), float(x[1]), float(x[2]), [float("nan")] + [0.0] * 20
+            )
+            self.tlog.write(mocap, self._stamp_us(t))
+        while self._garbage_due and self._garbage_due[0] <= t + 1e-9:
+            self._garbage_due.pop(0)
+            self.link.write_raw(self._rng.integers(0, 256, self.faults.garbage_bytes, dtype=np.uint8).tobytes())
+        self._send(mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t)), t)
+
+    # -- commands --------------------------------------------------------------------------------
+    def _await_command(self, t: float) -> None:
+        want_us = codec.time_usec(t)
+        waited = 0.0
+        while self._answered_us < want_us:
+            m = self.link.recv(self.reply_timeout_s)
+            if m is None:
+                waited += self.reply_timeout_s
+                if waited >= self.give_up_s:
+                    raise EndpointError(
+                        f"lock-step: no actuator command for t = {t:.3f} s within {self.give_up_s:.0f} s "
+                        f"on {self.link.connection}"
+                    )
+                self.stats.resends += 1  # the marker may have been lost: say again where we are
+                self._send(mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t)), t)
+                continue
+            self._handle(m, t)
+
+    def _drain_until(self, wall_deadline: float, t: float) -> None:
+        before = self.stats.commands_applied
+        while True:
+            left = wall_deadline - time.monotonic()
+            m = self.link.recv(max(left, 0.0))
+            if m is not None:
+                self._handle(m, t)
+            if left <= 0:
+                break
+        if self.stats.commands_applied == before:
+            self.stats.commands_late += 1
+
+    def _handle(self, m, t: float) -> None:
+        name = m.get_type()
+        self.stats.received[name] = self.stats.received.get(name, 0) + 1
+        self._record(bytes(m.get_msgbuf()), t, name)
+        if name == "HIL_ACTUATOR_CONTROLS" and self.actuators == "hil":
+            stamp = int(m.time_usec)
+            controls = np.asarray(m.controls[: 3 * self.vehicle.n_units], dtype=float)
+            if not np.all(np.isfinite(controls)):
+                self.stats.bad_commands += 1
+                return
+            self._apply(normalised_to_command(self.vehicle, controls), stamp, t)
+        elif name == "SERVO_OUTPUT_RAW":
+            pwm = [getattr(m, f"servo{i}_raw", 0) or 0 for i in range(1, 17)]
+            if self.actuators == "pwm":
+                self._apply(pwm_to_command(self.vehicle, pwm), self._unwrap(int(m.time_usec), t), t)
+            else:
+                self._pwm = np.asarray(pwm, dtype=int)  # what the controller says it commands
+
+    def _unwrap(self, stamp32: int, t: float) -> int:
+        now = codec.time_usec(t)
+        base = now - (now % SERVO_TIME_WRAP)
+        stamp = base + stamp32
+        return stamp - SERVO_TIME_WRAP if stamp > now + SERVO_TIME_WRAP // 2 else stamp
+
+    def _apply(self, command, stamp_us: int, t: float) -> None:
+        if self.lockstep and stamp_us < self._answered_us:
+            self.stats.stale_replies += 1
+            return
+        self.plant.set_command(command)
+        self.commands.append((t, np.asarray(command, dtype=float).copy()))
+        if self.actuators == "pwm":
+            self._pwm = command_to_pwm(self.vehicle, command)
+        self._answered_us = max(self._answered_us, stamp_us)
+        self.stats.commands_applied += 1

@@ -1,0 +1,639 @@
+"""The onboard loop: MAVLink sensors in, estimate -> control -> compensate -> allocate, commands out.
+
+The loop takes its clock and its link as arguments (DESIGN.md), so the same code runs against a
+socket, a serial line, a log replay or the HIL in lock-step:
+- `WallClock`: control ticks follow the monotonic clock (a real autopilot, `jetloop hil --realtime`).
+- `VehicleClock`: time is the newest vehicle time seen in the sensor stream (HIGHRES_IMU.time_usec,
+  SCALED_PRESSURE2/ATTITUDE/SYSTEM_TIME.time_boot_ms), so a control tick happens when the stream
+  says that instant has come: lock-step HIL and log replay, deterministic.
+
+Inputs: HIGHRES_IMU (or SCALED_IMU / SCALED_IMU2 / RAW_IMU, the best one present is used),
+SCALED_PRESSURE2 (depth), ATTITUDE; ground setpoints SET_POSITION_TARGET_LOCAL_NED (depth z and
+yaw in MAV_FRAME_LOCAL_NED; body velocity in a body frame, or NED velocity rotated by the
+estimated yaw), MANUAL_CONTROL (joystick: surge, sway, heave and yaw-rate demands), COMMAND_LONG
+(MAV_CMD_COMPONENT_ARM_DISARM; MAV_CMD_DO_SET_MODE, custom mode in param2), answered with
+COMMAND_ACK. Anything that cannot be decoded (NaN, wrong type) is counted and ignored.
+
+Outputs every control tick: HIL_ACTUATOR_CONTROLS (jets 0..1, azimuths then elevations -1..1;
+`output="hil"`) and SERVO_OUTPUT_RAW (the PWM of the vehicle's [pwm] table; with `output="pwm"`
+that is the actuator command itself, for a serial PWM board). Telemetry for the ground (on the
+ground link when there is one, else on the main link): HEARTBEAT (MAV_TYPE_SUBMARINE) and
+SYS_STATUS at 1 Hz, ATTITUDE, NAMED_VALUE_FLOAT (depth, setpoints, allocation status,
+estimator rejections, loop timing) and a DEBUG_FLOAT_ARRAY "wrench" (demanded and achieved
+body wrench) at `telemetry_rate_hz`; STATUSTEXT when the failsafe trips or clears.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from . import mavlink_codec as codec
+from .control import ManualAxes, Setpoint
+from .mavlink_codec import CodecError
+from .pwm import command_to_normalised, command_to_pwm
+from .sensors import depth_from_pressure
+from .vehicle import Vehicle
+
+IMU_RANK = {"HIGHRES_IMU": 0, "SCALED_IMU": 1, "SCALED_IMU2": 2, "SCALED_IMU3": 3, "RAW_IMU": 4}
+BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
+# SET_POSITION_TARGET_LOCAL_NED.type_mask bits (POSITION_TARGET_TYPEMASK)
+IGNORE_X, IGNORE_Y, IGNORE_Z = 1, 2, 4
+IGNORE_VX, IGNORE_VY, IGNORE_VZ = 8, 16, 32
+IGNORE_YAW, IGNORE_YAW_RATE = 1024, 2048
+# Modes (HEARTBEAT.custom_mode, MAV_CMD_DO_SET_MODE param2): ArduSub's numbers where it has them
+MODES = {"stabilize": 0, "depth_hold": 2, "guided": 4, "manual": 19}
+MODE_NAMES = {v: k for k, v in MODES.items()}
+
+
+# ------------------------------------------------------------------------------------------------
+# Clocks
+
+
+class WallClock:
+    """Real time: seconds since construction on the monotonic clock."""
+
+    lockstep = False
+
+    def __init__(self):
+        self._t0 = time.monotonic()
+
+    def now(self) -> float:
+        return time.monotonic() - self._t0
+
+    def wait_s(self, t_next: float) -> float:
+        return max(0.0, t_next - self.now())
+
+    def observe(self, t_vehicle: float) -> None:
+        pass
+
+
+class VehicleClock:
+    """Lock-step / replay: the newest vehicle time the sensor stream has reached."""
+
+    lockstep = True
+
+    def __init__(self, block_s: float = 0.5):
+        self._t = -math.inf
+        self.block_s = block_s
+
+    def now(self) -> float:
+        return self._t
+
+    def wait_s(self, t_next: float) -> float:
+        return self.block_s  # only a message can move time on
+
+    def observe(self, t_vehicle: float) -> None:
+        if t_vehicle > self._t:
+            self._t = t_vehicle
+
+
+# ------------------------------------------------------------------------------------------------
+# Setpoints: ground messages <-> the demand the loop flies
+
+
+def depth_yaw_target(depth_m: float | None = None, yaw_rad: float | None = None, time_boot_ms: int = 0):
+    """SET_POSITION_TARGET_LOCAL_NED carrying depth (NED z below the surface) and/or yaw."""
+    mask = IGNORE_X | IGNORE_Y | IGNORE_VX | IGNORE_VY | IGNORE_VZ | 0b111000000 | IGNORE_YAW_RATE
+    if depth_m is None:
+        mask |= IGNORE_Z
+    if yaw_rad is None:
+        mask |= IGNORE_YAW
+    return mavlink.MAVLink_set_position_target_local_ned_message(
+        time_boot_ms, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, mask,
+        0.0, 0.0, float(depth_m or 0.0), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, float(yaw_rad or 0.0), 0.0,
+    )
+
+
+def body_velocity_target(u_m_s: float, v_m_s: float = 0.0, time_boot_ms: int = 0):
+    """SET_POSITION_TARGET_LOCAL_NED carrying a body-frame (FRD) horizontal velocity only."""
+    mask = IGNORE_X | IGNORE_Y | IGNORE_Z | IGNORE_VZ | 0b111000000 | IGNORE_YAW | IGNORE_YAW_RATE
+    return mavlink.MAVLink_set_position_target_local_ned_message(
+        time_boot_ms, 1, 1, mavlink.MAV_FRAME_BODY_FRD, mask,
+        0.0, 0.0, 0.0, float(u_m_s), float(v_m_s), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+    )
+
+
+def arm_command(arm: bool = True):
+    return mavlink.MAVLink_command_long_message(
+        1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1.0 if arm else 0.0, 0, 0, 0, 0, 0, 0
+    )
+
+
+def mode_command(mode: str):
+    return mavlink.MAVLink_command_long_message(
+        1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
+        float(MODES[mode]), 0, 0, 0, 0, 0,
+    )
+
+
+def apply_position_target(sp: Setpoint, msg, yaw_estimate_rad: float) -> Setpoint:
+    """A SET_POSITION_TARGET_LOCAL_NED on top of the current setpoint (only the fields not ignored).
+
+    z is the depth (NED z below the surface) unless the frame is a body frame; yaw in NED;
+    vx, vy body velocities in a body frame, NED velocities (rotated by the estimated yaw) otherwise;
+    vz (with z ignored) a heave velocity. A position target ends joystick control.
+    """
+    mask = int(msg.type_mask)
+    if not all(math.isfinite(float(x)) for x in (msg.z, msg.vx, msg.vy, msg.vz, msg.yaw)):
+        raise CodecError("SET_POSITION_TARGET_LOCAL_NED has a non-finite field")
+    body = msg.coordinate_frame in BODY_FRAMES
+    depth, yaw = sp.depth_m, sp.yaw_rad
+    u, v, w = sp.velocity_body_m_s
+    if not mask & IGNORE_Z and not body:
+        depth, w = float(msg.z), None
+    if not mask & IGNORE_YAW:
+        yaw = float(msg.yaw)
+    if not (mask & IGNORE_VX and mask & IGNORE_VY):
+        vx = 0.0 if mask & IGNORE_VX else float(msg.vx)
+        vy = 0.0 if mask & IGNORE_VY else float(msg.vy)
+        if not body:  # NED velocity: into the body by the estimated yaw
+            c, s_ = math.cos(yaw_estimate_rad), math.sin(yaw_estimate_rad)
+            vx, vy = c * vx + s_ * vy, -s_ * vx + c * vy
+        u, v = vx, vy
+    if not mask & IGNORE_VZ and mask & IGNORE_Z:
+        depth, w = None, float(msg.vz)
+    return Setpoint(depth_m=depth, yaw_rad=yaw, velocity_body_m_s=(u, v, w), manual=None)
+
+
+def manual_axes(msg) -> ManualAxes:
+    """MANUAL_CONTROL (+-1000; z 0..1000 with 500 neutral, up above 500, as ArduSub) -> stick axes."""
+    vals = (msg.x, msg.y, msg.z, msg.r)
+    if not all(math.isfinite(float(x)) for x in vals):
+        raise CodecError("MANUAL_CONTROL has a non-finite axis")
+    return ManualAxes(surge=msg.x / 1000.0, sway=msg.y / 1000.0, heave_down=(500.0 - msg.z) / 500.0,
+                      yaw_right=msg.r / 1000.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# Configuration and statistics
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    control_rate_hz: float = 100.0
+    output: str = "hil"  # "hil": HIL_ACTUATOR_CONTROLS + SERVO_OUTPUT_RAW; "pwm": SERVO_OUTPUT_RAW only
+    allocator: str = "qp"  # "qp" (OSQP) or "baseline" (pseudo-inverse with clipping)
+    compensation: bool = True  # seed-004 azimuth-transient compensation
+    imu_timeout_s: float = 0.3
+    telemetry_rate_hz: float = 10.0
+    qp_time_budget_s: float | None = None  # None: 1 ms in real time, unlimited in lock-step
+    mode_at_start: str = "guided"
+    compensation_iterations: int = 2
+    # QP penalty on the change of each unit's force between steps. With the allocator's own
+    # default (1e-2) the azimuths wander in the null space from step to step, and every swing
+    # costs thrust through the seed-004 axial loss (F1x is driven by |alpha'|): in closed loop the
+    # jets then give ~30 % less than planned and depth is lost. 1.0 keeps the joints calm.
+    allocation_change_weight: float = 1.0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.control_rate_hz) and self.control_rate_hz > 0):
+            raise ValueError(f"control_rate_hz: expected a rate > 0 Hz, got {self.control_rate_hz!r}")
+        if self.output not in ("hil", "pwm"):
+            raise ValueError(f"output: expected 'hil' or 'pwm', got {self.output!r}")
+        if self.allocator not in ("qp", "baseline"):
+            raise ValueError(f"allocator: expected 'qp' or 'baseline', got {self.allocator!r}")
+        if self.mode_at_start not in MODES:
+            raise ValueError(f"mode_at_start: expected one of {sorted(MODES)}, got {self.mode_at_start!r}")
+
+
+@dataclass
+class LoopStats:
+    steps: int = 0
+    step_time_s: list = field(default_factory=list)  # wall time of estimate+control+compensate+allocate
+    solve_time_s: list = field(default_factory=list)
+    weighted_error: list = field(default_factory=list)
+    fallbacks: int = 0
+    limit_violations: int = 0
+    failsafe_entries: int = 0
+    arm_refusals: int = 0
+    rejected_inputs: int = 0  # messages that did not decode (NaN / inf / malformed)
+    ignored_imu: int = 0  # IMU messages of a lower-ranked source or out of order
+    commands: list = field(default_factory=list)  # (t, command) sent
+
+    def summary(self) -> dict:
+        st = np.asarray(self.step_time_s) * 1e3
+        qp = np.asarray(self.solve_time_s) * 1e6
+        return {
+            "steps": self.steps,
+            "step_median_ms": float(np.median(st)) if st.size else float("nan"),
+            "step_p99_ms": float(np.percentile(st, 99)) if st.size else float("nan"),
+            "step_max_ms": float(st.max()) if st.size else float("nan"),
+            "solve_median_us": float(np.median(qp)) if qp.size else float("nan"),
+            "solve_p99_us": float(np.percentile(qp, 99)) if qp.size else float("nan"),
+            "allocation_fallbacks": self.fallbacks,
+            "weighted_error_mean": float(np.mean(self.weighted_error)) if self.weighted_error else float("nan"),
+            "limit_violations": self.limit_violations,
+            "failsafe_entries": self.failsafe_entries,
+            "arm_refusals": self.arm_refusals,
+            "rejected_inputs": self.rejected_inputs,
+        }
+
+
+# ------------------------------------------------------------------------------------------------
+# The loop
+
+
+class OnboardLoop:
+    """The robot's loop: `poll()` forever (or `run()`); `step(t)` is one control period.
+
+    Collaborators, built from the vehicle: `Estimator` (onboard.estimator), `Controller`
+    (onboard.control), `QpAllocator` or `PseudoInverseAllocator` (onboard.allocation),
+    `TransientCompensator` + `allocate_compensated` (onboard.compensation) and the failsafe state
+    machine (onboard.failsafe). Pass `estimator=` / `controller=` to inject tuned ones.
+    """
+
+    def __init__(self, vehicle: Vehicle, link, clock, config: LoopConfig = LoopConfig(), ground=None,
+                 estimator=None, controller=None):
+        from . import failsafe
+        from .allocation import AllocationConfig, PseudoInverseAllocator, QpAllocator
+        from .compensation import TransientCompensator
+        from .control import Controller
+        from .estimator import Estimator
+
+        self.vehicle = vehicle
+        self.link = link
+        self.ground = ground
+        self.clock = clock
+        self.config = config
+        self.period_s = 1.0 / config.control_rate_hz
+        self.k = vehicle.n_units
+        self.estimator = estimator if estimator is not None else Estimator(vehicle)
+        self.controller = controller if controller is not None else Controller(vehicle)
+        # In lock-step nothing may depend on the wall clock: the QP's time budget is lifted there.
+        budget = config.qp_time_budget_s or (10.0 if clock.lockstep else 1e-3)
+        alloc_cfg = AllocationConfig.from_vehicle(vehicle, time_budget_s=budget,
+                                                  change_weight=config.allocation_change_weight)
+        cls = QpAllocator if config.allocator == "qp" else PseudoInverseAllocator
+        self.allocator = cls(vehicle, self.period_s, alloc_cfg)
+        self.compensator = TransientCompensator(vehicle, self.period_s) if config.compensation else None
+        self._fs = failsafe
+        self.fs_state = failsafe.FailsafeState(imu_timeout_s=config.imu_timeout_s)
+        self.setpoint = Setpoint()
+        self.mode = MODES[config.mode_at_start]
+        self.command = failsafe.safe_command(self.k)
+        self.allocation = None
+        self.prediction = None
+        self.demand = np.zeros(6)
+        self.stats = LoopStats()
+        self._queue: list = []  # (t, arrival order, kind, sample) awaiting the estimator
+        self._order = 0
+        self._imu_rank = len(IMU_RANK)
+        self._last_imu_stamp = -math.inf  # the newest IMU's own time stamp (s)
+        self._has_pressure2 = False
+        self._est_started = False
+        self._next_tick = None
+        self._marker_t = -math.inf  # newest SYSTEM_TIME: the stream is complete up to it
+        self._last_answer_us = -1
+        self._next_telemetry = -math.inf
+        self._next_heartbeat = -math.inf
+        self._was_enabled = False
+        self._started = False
+
+    @property
+    def armed(self) -> bool:
+        return self.fs_state.outputs_enabled
+
+    @property
+    def failsafe_active(self) -> bool:
+        return self.fs_state.mode is self._fs.Mode.FAILSAFE
+
+    # -- running -------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Say hello on every link (a udpin peer learns our address from it)."""
+        if not self._started:
+            self._started = True
+            hb = self._heartbeat()
+            self.link.send(hb)
+            if self.ground is not None:
+                self.ground.send(hb)
+
+    def run(self, duration_s: float | None = None, stop=None) -> None:
+        """Poll until `stop()` is true or the clock passes `duration_s` (clock time)."""
+        self.start()
+        while not (stop is not None and stop()):
+            if duration_s is not None and self.clock.now() >= duration_s:
+                break
+            self.poll()
+
+    def poll(self) -> None:
+        """Step if a control tick is due, else wait (at most until the tick) for one message."""
+        self.start()
+        if self._tick_due():
+            now = self.clock.now()
+            if now - self._next_tick > 2 * self.period_s:  # far behind (a gap): skip, do not burst
+                self._next_tick += math.floor((now - self._next_tick) / self.period_s) * self.period_s
+            t = self._next_tick
+            self._next_tick = t + self.period_s
+            self.step(t)
+            return
+        wait = self.clock.wait_s(self._next_tick) if self._next_tick is not None else 0.1
+        m = self.link.recv(wait)
+        if m is not None:
+            self.handle(m)
+        if self.ground is not None:
+            g = self.ground.recv(0.0)
+            while g is not None:
+                self.handle(g)
+                g = self.ground.recv(0.0)
+
+    def _tick_due(self) -> bool:
+        """Wall clock: the tick time has come. Vehicle clock: the stream is complete up to the tick,
+        i.e. a SYSTEM_TIME marker reached it or a newer sample arrived."""
+        if self._next_tick is None:
+            return False
+        if self.clock.lockstep:
+            return self.clock.now() > self._next_tick + 1e-7 or self._marker_t >= self._next_tick - 1e-7
+        return self.clock.now() >= self._next_tick
+
+    # -- input ---------------------------------------------------------------------------------
+    def handle(self, m) -> None:
+        """One received message: a sensor sample into the queue, a setpoint or command applied.
+        What does not decode (NaN, inf, a field out of range) is counted and dropped."""
+        name = m.get_type()
+        try:
+            if name in IMU_RANK:
+                self._on_imu(m)
+            elif name in ("SCALED_PRESSURE2", "SCALED_PRESSURE"):
+                if name == "SCALED_PRESSURE" and self._has_pressure2:
+                    return  # ArduSub's depth sensor is SCALED_PRESSURE2; the other is the board's
+                self._has_pressure2 |= name == "SCALED_PRESSURE2"
+                s = codec.decode_pressure(m)
+                self._observe(s.time_s)
+                self._enqueue(s.time_s, "depth", depth_from_pressure(s.press_abs_pa, self.vehicle))
+            elif name == "ATTITUDE":
+                s = codec.decode_attitude(m)
+                self._observe(s.time_s)
+                self._enqueue(s.time_s, "attitude", s)
+            elif name == "SYSTEM_TIME":
+                t = m.time_boot_ms / 1e3
+                self._observe(t)
+                self._marker_t = max(self._marker_t, t)
+                self._answer_marker(t)
+            elif name == "SET_POSITION_TARGET_LOCAL_NED":
+                self.setpoint = apply_position_target(self.setpoint, m, self._yaw_estimate())
+                self.mode = MODES["guided"]
+            elif name == "MANUAL_CONTROL":
+                self.setpoint = Setpoint(manual=manual_axes(m))
+                self.mode = MODES["manual"]
+            elif name == "COMMAND_LONG":
+                self._on_command(m)
+        except (CodecError, ValueError, TypeError, AttributeError, OverflowError):
+            self.stats.rejected_inputs += 1
+
+    def _observe(self, t: float) -> None:
+        self.clock.observe(t)
+        if self._next_tick is None:
+            now = self.clock.now()
+            if math.isfinite(now):
+                self._next_tick = now if self.clock.lockstep else now + self.period_s
+
+    def _on_imu(self, m) -> None:
+        rank = IMU_RANK[m.get_type()]
+        if rank > self._imu_rank:
+            self.stats.ignored_imu += 1  # a better IMU stream is present
+            return
+        s = codec.decode_imu(m)
+        if rank == self._imu_rank and s.time_s <= self._last_imu_stamp:
+            self.stats.ignored_imu += 1  # duplicate or out of order
+            return
+        self._imu_rank = rank
+        self._last_imu_stamp = s.time_s
+        self._observe(s.time_s)
+        self.fs_state = self._fs.on_imu(self.fs_state, self.clock.now())
+        self._enqueue(s.time_s, "imu", s)
+
+    def _enqueue(self, t: float, kind: str, sample) -> None:
+        self._queue.append((t, self._order, kind, sample))
+        self._order += 1
+
+    def _on_command(self, m) -> None:
+        cmd = int(m.command)
+        result = mavlink.MAV_RESULT_ACCEPTED
+        now = self.clock.now() if math.isfinite(self.clock.now()) else 0.0
+        if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            fs = self._fs
+            if float(m.param1) >= 0.5:
+                self.fs_state = fs.on_arm(self.fs_state, now, self.estimator.diverged)
+                if not self.armed:
+                    result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+                    self.stats.arm_refusals += 1
+                    self._statustext(mavlink.MAV_SEVERITY_WARNING, self.fs_state.reason)
+            else:
+                was_failsafe = self.failsafe_active
+                self.fs_state = fs.on_disarm(self.fs_state, now)
+                if was_failsafe:  # the explicit recovery: start estimating afresh
+                    if self.estimator.diverged:
+                        self.estimator.reset()
+                        self._est_started = False
+                    self._statustext(mavlink.MAV_SEVERITY_NOTICE, "failsafe cleared: disarmed")
+        elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
+            mode = int(round(float(m.param2)))
+            if mode in MODE_NAMES:
+                self.mode = mode
+                est = self.estimator.estimate
+                if MODE_NAMES[mode] == "depth_hold":
+                    self.setpoint = Setpoint(depth_m=est.depth_m, yaw_rad=est.euler_rad[2])
+                elif MODE_NAMES[mode] in ("stabilize", "manual"):
+                    self.setpoint = Setpoint(manual=ManualAxes())
+            else:
+                result = mavlink.MAV_RESULT_DENIED
+        else:
+            result = mavlink.MAV_RESULT_UNSUPPORTED
+        ack = mavlink.MAVLink_command_ack_message(cmd, result, 0, 0, m.get_srcSystem(), m.get_srcComponent())
+        self.link.send(ack)
+        if self.ground is not None:
+            self.ground.send(ack)
+
+    def _yaw_estimate(self) -> float:
+        return float(self.estimator.estimate.euler_rad[2])
+
+    # -- the control step ----------------------------------------------------------------------
+    def step(self, t: float) -> None:
+        """One control period at clock time t: estimate, failsafe, control, compensate, allocate, send."""
+        t0 = time.perf_counter()
+        self._run_estimator()
+        est = self.estimator.estimate
+        was_failsafe = self.failsafe_active
+        self.fs_state = self._fs.on_tick(self.fs_state, t, self.estimator.diverged,
+                                         self.estimator.health.diverged_reason)
+        if self.failsafe_active and not was_failsafe:
+            self.stats.failsafe_entries += 1
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, f"FAILSAFE {self.fs_state.reason}"[:50])
+        if self.armed:
+            if not self._was_enabled:  # joints start from the safe (neutral) command
+                self.controller.reset()
+                self.allocator.previous = None
+                if self.compensator is not None:
+                    self.compensator.reset()
+            achieved = None
+            if self.allocation is not None and self._was_enabled:
+                achieved = self.allocation.wrench_achieved if self.prediction is None else (
+                    np.asarray(self.allocation.wrench_achieved) + self.prediction.wrench_n)
+            self.demand = self.controller.step(est, self.setpoint, self.period_s, achieved=achieved).as_array()
+            if self.compensator is not None:
+                from .compensation import allocate_compensated
+
+                res = allocate_compensated(self.allocator, self.compensator, self.demand, nu_r=est.nu,
+                                           iterations=self.config.compensation_iterations)
+                alloc, self.prediction = res.allocation, res.prediction
+            else:
+                alloc = self.allocator.allocate(self.demand, nu_r=est.nu)
+            self.allocation = alloc
+            command = np.asarray(alloc.command, dtype=float)
+            self.stats.solve_time_s.append(alloc.solve_time_s)
+            if math.isfinite(alloc.weighted_error):
+                self.stats.weighted_error.append(float(alloc.weighted_error))
+            self.stats.fallbacks += int(bool(alloc.fallback))
+            self.stats.limit_violations += self._violations(command)
+        else:
+            command = self._fs.safe_command(self.k)
+            self.demand = np.zeros(6)
+        self._was_enabled = self.armed
+        self.command = command
+        elapsed = time.perf_counter() - t0
+        self.stats.step_time_s.append(elapsed)
+        self.stats.steps += 1
+        self.stats.commands.append((t, command.copy()))
+        with self.link.batch():
+            if self.ground is not None:
+                with self.ground.batch():
+                    self._send_outputs(t, command)
+                    self._telemetry(t, est, elapsed)
+            else:
+                self._send_outputs(t, command)
+                self._telemetry(t, est, elapsed)
+
+    def _run_estimator(self) -> None:
+        """Fuse the queued samples in time order, predicting between them with the held command."""
+        if not self._queue:
+            return
+        self._queue.sort(key=lambda e: (e[0], e[1]))
+        est = self.estimator
+        for t, _, kind, sample in self._queue:
+            if not self._est_started:
+                est.time_s = t
+                self._est_started = True
+            dt = t - est.time_s
+            while dt > 1e-7:
+                h = min(dt, 0.02)
+                est.predict(h, self.command)
+                dt -= h
+            if kind == "imu":
+                est.update_imu(sample)
+            elif kind == "depth":
+                est.update_depth(sample)
+            else:
+                est.update_attitude(sample)
+        self._queue.clear()
+
+    def _violations(self, command) -> int:
+        """Limits an allocated command must never break: 0 <= n <= n_max, |angle| <= limit, and
+        joint travel per step <= rate_limit * dt (against the previous command sent)."""
+        k, v = self.k, self.vehicle
+        n, ang = command[:k], command[k:]
+        tol = 1e-9
+        bad = int(np.sum((n < -tol) | (n > v.thruster.n_max + tol)))
+        bad += int(np.sum(np.abs(ang) > v.servo.angle_limit + tol))
+        bad += int(np.sum(np.abs(ang - self.command[k:]) > v.servo.rate_limit * self.period_s + 1e-6))
+        return bad
+
+    # -- output --------------------------------------------------------------------------------
+    def _send_outputs(self, t: float, command) -> None:
+        us = codec.time_usec(max(t, 0.0))
+        pwm = command_to_pwm(self.vehicle, command)
+        if self.config.output == "hil":
+            controls = np.zeros(16)
+            controls[: 3 * self.k] = command_to_normalised(self.vehicle, command)
+            mode = mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
+            self.link.send(mavlink.MAVLink_hil_actuator_controls_message(us, [float(c) for c in controls], mode, 0))
+        servo = mavlink.MAVLink_servo_output_raw_message(us & 0xFFFFFFFF, 0, *(int(p) for p in pwm))
+        self.link.send(servo)
+        if self.ground is not None:
+            self.ground.send(servo)
+        self._last_answer_us = max(self._last_answer_us, us)
+
+    def _answer_marker(self, t: float) -> None:
+        """Lock-step: every frame marker gets a command stamped with it, even between control ticks."""
+        if not self.clock.lockstep:
+            return
+        if self._next_tick is not None and t >= self._next_tick - 1e-7:
+            return  # a tick is due at or before t: poll() steps and answers
+        if codec.time_usec(max(t, 0.0)) > self._last_answer_us:
+            with self.link.batch():
+                self._send_outputs(t, self.command)
+
+    def _heartbeat(self):
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+        status = (mavlink.MAV_STATE_CRITICAL if self.failsafe_active
+                  else mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY)
+        return mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_SUBMARINE, mavlink.MAV_AUTOPILOT_GENERIC, base, self.mode, status, 3
+        )
+
+    def _telemetry(self, t: float, est, step_s: float) -> None:
+        out = self.ground if self.ground is not None else self.link
+        if t + 1e-9 >= self._next_heartbeat:
+            self._next_heartbeat = t + 1.0
+            hb = self._heartbeat()
+            out.send(hb)
+            if out is not self.link:
+                self.link.send(hb)
+            out.send(self._sys_status(step_s))
+        if t + 1e-9 < self._next_telemetry:
+            return
+        self._next_telemetry = t + 1.0 / self.config.telemetry_rate_hz
+        ms = codec.time_boot_ms(max(t, 0.0))
+        roll, pitch, yaw = est.euler_rad
+        p, q, r = est.rates_rad_s
+        out.send(mavlink.MAVLink_attitude_message(ms, roll, pitch, yaw, p, q, r))
+        a = self.allocation
+        sp = self.setpoint
+        st = self.stats
+        recent = np.asarray(st.step_time_s[-100:]) * 1e3
+        nan = math.nan
+        values = {
+            "depth": est.depth_m,
+            "depth_sp": sp.depth_m if sp.depth_m is not None else nan,
+            "yaw_sp": sp.yaw_rad if sp.yaw_rad is not None else nan,
+            "u_sp": sp.velocity_body_m_s[0] if sp.velocity_body_m_s[0] is not None else nan,
+            "u_est": est.velocity_body_m_s[0],
+            "alloc_err": a.weighted_error if a is not None else 0.0,
+            "alloc_fb": float(st.fallbacks),
+            "qp_us": a.solve_time_s * 1e6 if a is not None else 0.0,
+            "step_ms": step_s * 1e3,
+            "step_p99": float(np.percentile(recent, 99)) if recent.size else 0.0,
+            "failsafe": 1.0 if self.failsafe_active else 0.0,
+            "armed": 1.0 if self.armed else 0.0,
+            "est_rej": float(est.health.rejected_total),
+            "in_rej": float(st.rejected_inputs),
+            "link_bad": float(self.link.bad_packets + self.link.unknown_packets),
+        }
+        for name, value in values.items():
+            out.send(mavlink.MAVLink_named_value_float_message(ms, name.encode(), float(value)))
+        data = list(self.demand) + (list(a.wrench_achieved) if a is not None else [0.0] * 6)
+        data = [float(x) if math.isfinite(x) else 0.0 for x in data] + [0.0] * (58 - len(data))
+        out.send(mavlink.MAVLink_debug_float_array_message(codec.time_usec(max(t, 0.0)), b"wrench", 1, data))
+
+    def _sys_status(self, step_s: float):
+        S = mavlink
+        present = (S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+                   | S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE | S.MAV_SYS_STATUS_AHRS
+                   | S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
+        health = present
+        if self.failsafe_active:
+            health &= ~(S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL)
+        if self.estimator.diverged:
+            health &= ~S.MAV_SYS_STATUS_AHRS
+        load = int(min(step_s / self.period_s, 1.0) * 1000)
+        errors = min(self.link.bad_packets + self.link.unknown_packets, 0xFFFF)
+        return S.MAVLink_sys_status_message(present, present, health, load, 0, -1, -1, 0, errors,
+                                            min(self.stats.rejected_inputs, 0xFFFF), 0, 0, 0)
+
+    def _statustext(self, severity: int, text: str) -> None:
+        msg = mavlink.MAVLink_statustext_message(severity, text[:50].encode())
+        (self.ground or self.link).send(msg)
