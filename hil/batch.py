@@ -16,6 +16,11 @@ the single-vehicle `rk4_steps` run with the same state, command and parameters.
 `monte_carlo` draws perturbed vehicles from one seeded generator and packs their parameters;
 `perturbed_values` gives the drawn values themselves (the truth an identification should find).
 Pure math: arrays in, arrays out; no clock, no files.
+
+Processes: with numba's OpenMP threading layer (the one here unless `tbb` is installed) a process
+forked after it ran a batch dies when the child runs one ("fork() called from a process already
+using GNU OpenMP"). A process pool over batches uses `multiprocessing.get_context("forkserver")`
+or "spawn"; threads within one batch come from numba (`numba.set_num_threads`).
 """
 
 from __future__ import annotations
