@@ -192,11 +192,10 @@ def simulate_fixed_rig(vehicle, design: PseudoImpulse, axis: str = "azimuth", un
     The unit spins at `n_rev_s` (default 0.75 n_max, seed 004's 75 % PWM) from the start (its
     motor already at speed); the other units are off. The angle command of `design` drives the
     joint through `servo_lag` (spec 4); a zero tail of `tail_s` (default twice the design's
-    length) follows so the slow transient poles settle and the FFT grid resolves them. `noise_n` adds white noise (N)
-    to the force channels, `noise_nm` (N m) to the moment channel of the force/torque sensor.
+    length) follows so the slow transient poles settle and the FFT grid resolves them.
+    `noise_n` adds white noise (N) to the force channels, `noise_nm` (N m) to the moment
+    channel of the force/torque sensor.
     """
-    from onboard.vehicle import Vehicle  # noqa: F401  (type only)
-
     if axis not in ("azimuth", "elevation"):
         raise ValueError(f"axis must be 'azimuth' or 'elevation', got {axis!r}")
     k = vehicle.n_units
@@ -317,6 +316,7 @@ class RowFit:
     measured_gain: float  # K as measured on the rig (N or N m per rad/s)
     correlation: float  # Pearson correlation of measured and model dB over the band
     rms_db: float  # rms dB error of the fit
+    at_bound: tuple = ()  # names of coefficients that ended on their bound (not resolved by the band)
 
 
 def magnitude_db(row: str, coeffs, omega):
@@ -400,8 +400,11 @@ def fit_row(row: str, bode: BodeMagnitude, prior, gain_scale: float = 1.0, start
     k_meas = 10 ** (offset / 20)
     model_db = sdb + offset
     coeffs = (k_meas / gain_scale,) + tuple(float(c) for c in np.exp(shape))
+    names = ("a", "b", "c", "d") if row == "m1z" else ("a", "b", "c", "d", "e", "g")
+    edge = 1e-3 * math.log(bound)
+    at_bound = tuple(nm for nm, x, l, h in zip(names, shape, lo[1:], hi[1:]) if x - l < edge or h - x < edge)
     return RowFit(
         row=row, coeffs=tuple(float(c) for c in coeffs), measured_gain=float(k_meas),
         correlation=correlation(ml, model_db),
-        rms_db=float(np.sqrt(np.mean((ml - model_db) ** 2))),
+        rms_db=float(np.sqrt(np.mean((ml - model_db) ** 2))), at_bound=at_bound,
     )

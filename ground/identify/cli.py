@@ -764,6 +764,11 @@ def _azimuth(args, vehicle) -> int:
         frag[f"effects.azimuth_transient.{row}"] = list(fit.coeffs)
         summary.append(f"  {row}: [" + ", ".join(f"{c:.2f}" for c in fit.coeffs) + f"]  correlation {fit.correlation:.4f} "
                        f"(seed 004: {az.SEED004_CORRELATION_75[row]:.2f}), rms {fit.rms_db:.3f} dB")
+        if fit.at_bound:
+            summary.append(f"    warning: {row} {', '.join(fit.at_bound)} stopped at the bound (a factor 30 from the prior): "
+                           f"the {design.band_hz:.3g} Hz band and this noise do not resolve it; keep the prior's value, "
+                           "average repeated runs or widen the band")
+        results_rows[row]["at_bound"] = list(fit.at_bound)
     results = {"design": {"samples": design.n_samples, "rate": design.rate_hz, "a": design.a, "b": design.b,
                           "q": design.q, "band_hz": design.band_hz},
                "thrust": {a: r.thrust_n for a, r in records.items()}, "gain_per_newton": gain,
