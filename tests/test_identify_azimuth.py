@@ -96,6 +96,7 @@ def test_clamped_plant_gives_back_the_75_percent_rows(vehicle, design, rig, row)
     assert fit.correlation >= az.SEED004_CORRELATION_75[row]
     assert fit.correlation > 0.999
     assert np.array(fit.coeffs) == pytest.approx(truth, rel=0.025)
+    assert fit.at_bound == ()
     w = np.geomspace(0.1, 2 * math.pi * design.band_hz, 100)
     assert np.max(np.abs(az.magnitude_db(row, fit.coeffs, w) - az.magnitude_db(row, truth, w))) < 0.1
 
