@@ -146,3 +146,15 @@ def test_bad_arguments_are_named(vehicle, design):
         az.fit_row("f1x", bode, [1.0, 2.0])
     with pytest.raises(ValueError, match="row must be one of"):
         az.row_signals(None, "f9q")
+
+
+def test_rig_kernels_cache_is_keyed_on_the_model_source():
+    # the rig kernels compile onboard.model into themselves: their disk cache must change with it
+    import hashlib
+    from pathlib import Path
+
+    from onboard import model
+
+    digest = hashlib.sha256(Path(model.__file__).read_bytes()).hexdigest()
+    for kernel in (az._rig_run, az._rig_derivative):
+        assert kernel._cache._impl.locator.get_source_stamp()[1] == (digest,)

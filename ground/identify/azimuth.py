@@ -29,11 +29,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numba import njit
 from scipy.optimize import least_squares, minimize
 
+from hil.batch import _cache_keyed_on
 from onboard import model
 
 ROWS = ("f1x", "f1y", "m1z", "f2x", "f2z")
@@ -132,14 +134,17 @@ class RigRecord:
     gain_per_newton: float
 
 
-@njit(cache=True)
+# The two kernels below compile onboard.model's functions into themselves: they are cached on
+# disk keyed on onboard/model.py too (hil.batch's helper), so a model edit never leaves a stale
+# cached rig running old physics.
+@njit
 def _rig_derivative(x, u, p, xdot):
     model.derivative(x, u, p, xdot)
     for i in range(13):  # the rig holds the body: no motion
         xdot[i] = 0.0
 
 
-@njit(cache=True)
+@njit
 def _rig_run(x, commands, p, dt, sub, unit, out):
     """Integrate the clamped vehicle; out[s] = [alpha, beta, loss, lat_a, lat_b, moment, T0]."""
     k = (x.shape[0] - 13) // (3 + model.N_TF_STATES)
@@ -182,6 +187,10 @@ def _rig_run(x, commands, p, dt, sub, unit, out):
             x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
             model.project(x, u, p)
     return x
+
+
+_cache_keyed_on(_rig_derivative, Path(model.__file__))
+_cache_keyed_on(_rig_run, Path(model.__file__))
 
 
 def simulate_fixed_rig(vehicle, design: PseudoImpulse, axis: str = "azimuth", unit: int = 0,
