@@ -103,8 +103,10 @@ def main(argv=None) -> int:
     ap.add_argument("--batch-s", type=float, default=1.0, help="simulated seconds per batch vehicle")
     ap.add_argument("--coarse-dt", type=float, default=0.01, help="second batch step (s); 0 to skip")
     args = ap.parse_args(argv)
-    if args.dt <= 0 or args.repeat < 1 or args.vehicles < 1 or args.python_steps < 1:
-        ap.error("--dt must be > 0 and --repeat, --vehicles, --python-steps >= 1")
+    if min(args.dt, args.single_s, args.batch_s) <= 0 or args.coarse_dt < 0:
+        ap.error("--dt, --single-s and --batch-s must be > 0, --coarse-dt >= 0")
+    if min(args.repeat, args.vehicles, args.python_steps) < 1:
+        ap.error("--repeat, --vehicles and --python-steps must be >= 1")
 
     dt, rep = args.dt, args.repeat
     load_start = os.getloadavg()[0]
