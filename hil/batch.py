@@ -43,7 +43,7 @@ STATE_PIECES = ("pos", "quat", "nu", "n", "alpha", "beta", "transient")
 # ------------------------------------------------------------------------------------------------
 # Compiled kernel
 
-@njit(parallel=True)  # cached on disk below, keyed on this file and onboard/model.py
+@njit(parallel=True, nogil=True)  # cached on disk below, keyed on this file and onboard/model.py
 def _run(states, schedule, params, dt, hold, n_steps, every, idx, record, out):
     """Step every vehicle `n_steps` times; record x[idx] at step 0 and every `every` steps.
 
