@@ -240,3 +240,36 @@ def test_wrench_round_trip():
     w = Wrench.from_array([1, 2, 3, 4, 5, 6])
     assert w.force_body_n == (1.0, 2.0, 3.0) and w.moment_body_nm == (4.0, 5.0, 6.0)
     np.testing.assert_array_equal(w.as_array(), [1, 2, 3, 4, 5, 6])
+
+
+def test_yaw_turns_the_short_way_across_pi():
+    """At 170 deg asked for -170 deg: the error is +20 deg, so the yaw moment is positive and the
+    reference crosses +180 deg rather than sweeping back through 0."""
+    x = model.initial_state(VEHICLE, 0.5)
+    x[3:7] = model.euler_to_quat(0.0, 0.0, 170 * DEG)
+    est = state_from_truth(x, VEHICLE)
+    ctl = Controller(VEHICLE)
+    sp = Setpoint(depth_m=0.5, yaw_rad=-170 * DEG)
+    first = ctl.step(est, sp, 0.01)
+    assert first.moment_body_nm[2] > 0.0
+    for _ in range(400):
+        ctl.step(est, sp, 0.01)
+    assert abs(wrap(ctl.reference.yaw_rad - (-170 * DEG))) < 1 * DEG
+    assert ctl.reference.yaw_rate_rad_s >= -1e-6  # it never turned the long way
+
+
+def test_heave_free_demands_no_vertical_effort():
+    """No depth and no heave velocity: the vehicle is left to its buoyancy (Z = 0), level held."""
+    tau = Controller(VEHICLE).step(_at_rest(), Setpoint(yaw_rad=0.0, velocity_body_m_s=(0.0, 0.0, None)), 0.01)
+    np.testing.assert_allclose(tau.as_array(), 0.0, atol=1e-12)
+    assert Controller(VEHICLE).step(_at_rest(), Setpoint(), 0.01).as_array() @ np.ones(6) == pytest.approx(0.0)
+
+
+def test_controller_refuses_bad_dt_and_nonfinite_estimate():
+    ctl = Controller(VEHICLE)
+    with pytest.raises(ValueError, match="dt must be"):
+        ctl.step(_at_rest(), Setpoint(), 0.0)
+    bad = state_from_truth(model.initial_state(VEHICLE, 0.5), VEHICLE)
+    from dataclasses import replace
+    with pytest.raises(ValueError, match="non-finite"):
+        ctl.step(replace(bad, depth_m=float("nan")), Setpoint(), 0.01)
