@@ -132,6 +132,21 @@ class Recording:
     def duration_s(self) -> float:
         return self.t_end_s - self.t_start_s if self.streams else 0.0
 
+    def between(self, t0_s: float, t1_s: float) -> "Recording":
+        """The same recording with every stream cut to t0_s <= t < t1_s (vehicle time)."""
+        import dataclasses
+
+        def cut(stream):
+            if stream is None:
+                return None
+            sel = (stream.time_s >= t0_s) & (stream.time_s < t1_s)
+            return dataclasses.replace(stream, **{
+                f.name: _frozen(getattr(stream, f.name)[sel]) for f in dataclasses.fields(stream)
+                if isinstance(getattr(stream, f.name), np.ndarray)})
+
+        return dataclasses.replace(self, **{n: cut(getattr(self, n)) for n in
+                                            ("imu", "pressure", "servo", "attitude", "esc", "mocap")})
+
     def summary(self) -> dict:
         """The `recording` block of the diagnosis report (spec/recording.md section 2)."""
         s = self.skipped
@@ -395,7 +410,7 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
     pressure = None
     if "SCALED_PRESSURE2" in decoded:
         a = decoded["SCALED_PRESSURE2"]
-        t, keep = _monotonic(a["time_boot_ms"] * 1e-3, "pressure", nonmono, gaps)
+        t, keep = _monotonic(a["time_boot_ms"] / 1e3, "pressure", nonmono, gaps)
         pressure = PressureStream(_frozen(t), _frozen(a["press_abs"][keep] * 100.0), "SCALED_PRESSURE2")
     servo = None
     if "SERVO_OUTPUT_RAW" in decoded:
@@ -403,7 +418,7 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
     attitude = None
     if "ATTITUDE" in decoded:
         a = decoded["ATTITUDE"]
-        t, keep = _monotonic(a["time_boot_ms"] * 1e-3, "attitude", nonmono, gaps)
+        t, keep = _monotonic(a["time_boot_ms"] / 1e3, "attitude", nonmono, gaps)
         e = np.column_stack([a["roll"], a["pitch"], a["yaw"]])[keep]
         r = np.column_stack([a["rollspeed"], a["pitchspeed"], a["yawspeed"]])[keep]
         attitude = AttitudeStream(_frozen(t), _frozen(e), _frozen(r))
@@ -411,12 +426,12 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
     if "ESC_STATUS" in decoded:
         a = decoded["ESC_STATUS"]
         a = a[a["index"] == 0]  # units 1-4
-        t, keep = _monotonic(_unwrap_us(a["time_usec"]) * 1e-6, "esc", nonmono, gaps)
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "esc", nonmono, gaps)
         esc = EscStream(_frozen(t), _frozen(np.asarray(a["rpm"], float)[keep]))
     mocap = None
     if "ATT_POS_MOCAP" in decoded:
         a = decoded["ATT_POS_MOCAP"]
-        t, keep = _monotonic(_unwrap_us(a["time_usec"]) * 1e-6, "mocap", nonmono, gaps)
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "mocap", nonmono, gaps)
         mocap = MocapStream(_frozen(t), _frozen(np.asarray(a["q"], float)[keep]),
                             _frozen(np.column_stack([a["x"], a["y"], a["z"]])[keep]))
     skipped_info = Skipped(int(bad_crc), int(skipped), int(truncated), int(unknown), nonmono, tuple(gaps))
@@ -471,7 +486,7 @@ def _imu_from_tlog(decoded: dict, nonmono: dict, gaps: list) -> ImuStream | None
     if "HIGHRES_IMU" in decoded:
         a = decoded["HIGHRES_IMU"]
         a = a[a["id"] == 0] if "id" in a.dtype.names and (a["id"] == 0).any() else a
-        t, keep = _monotonic(_unwrap_us(a["time_usec"]) * 1e-6, "imu", nonmono, gaps)
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "imu", nonmono, gaps)
         acc = np.column_stack([a["xacc"], a["yacc"], a["zacc"]])[keep]
         gyr = np.column_stack([a["xgyro"], a["ygyro"], a["zgyro"]])[keep]
         return ImuStream(_frozen(t), _frozen(acc), _frozen(gyr), "HIGHRES_IMU")
@@ -494,7 +509,7 @@ def _servo_from_tlog(a, nonmono: dict, gaps: list) -> ServoStream:
     # port 0 carries channels 1-16 (9-16 in the MAVLink 2 extension fields); other ports are
     # further banks of 8 that ArduSub does not use.
     a = a[a["port"] == 0] if (a["port"] == 0).any() else a
-    t, keep = _monotonic(_unwrap_us(a["time_usec"]) * 1e-6, "servo", nonmono, gaps)
+    t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "servo", nonmono, gaps)
     pwm = np.column_stack([a[f"servo{c}_raw"] for c in range(1, 17)]).astype(float)[keep]
     return ServoStream(_frozen(t), _frozen(pwm))
 
@@ -531,20 +546,20 @@ def _read_dataflash(path: Path, data: bytes) -> Recording:
     imu = pressure = servo = attitude = esc = None
     imu_rows = [r for r in rows["IMU"] if r.get("I", 0) == 0]
     if imu_rows:
-        t, keep = _monotonic([r["TimeUS"] * 1e-6 for r in imu_rows], "imu", nonmono, gaps)
+        t, keep = _monotonic([r["TimeUS"] / 1e6 for r in imu_rows], "imu", nonmono, gaps)
         acc = np.array([[r["AccX"], r["AccY"], r["AccZ"]] for r in imu_rows])[keep]
         gyr = np.array([[r["GyrX"], r["GyrY"], r["GyrZ"]] for r in imu_rows])[keep]
         imu = ImuStream(_frozen(t), _frozen(acc), _frozen(gyr), "IMU")
     baro = [r for r in rows["BARO"] if r.get("I", 0) == 1] or [r for r in rows["BARO"] if r.get("I", 0) == 0]
     if baro:  # ArduSub: instance 1 is the external depth sensor
-        t, keep = _monotonic([r["TimeUS"] * 1e-6 for r in baro], "pressure", nonmono, gaps)
+        t, keep = _monotonic([r["TimeUS"] / 1e6 for r in baro], "pressure", nonmono, gaps)
         pressure = PressureStream(_frozen(t), _frozen(np.array([r["Press"] for r in baro])[keep]), "BARO")
     if rows["RCOU"]:
-        t, keep = _monotonic([r["TimeUS"] * 1e-6 for r in rows["RCOU"]], "servo", nonmono, gaps)
+        t, keep = _monotonic([r["TimeUS"] / 1e6 for r in rows["RCOU"]], "servo", nonmono, gaps)
         pwm = np.array([[r.get(f"C{c}", 0) for c in range(1, 17)] for r in rows["RCOU"]], float)[keep]
         servo = ServoStream(_frozen(t), _frozen(pwm))
     if rows["ATT"]:
-        t, keep = _monotonic([r["TimeUS"] * 1e-6 for r in rows["ATT"]], "attitude", nonmono, gaps)
+        t, keep = _monotonic([r["TimeUS"] / 1e6 for r in rows["ATT"]], "attitude", nonmono, gaps)
         e = np.radians(np.array([[r["Roll"], r["Pitch"], r["Yaw"]] for r in rows["ATT"]]))[keep]
         e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
         rates = np.zeros_like(e)
@@ -558,7 +573,7 @@ def _read_dataflash(path: Path, data: bytes) -> Recording:
         index = {tt: i for i, tt in enumerate(times)}
         for r in esc_rows:
             rpm[index[r["TimeUS"]], int(r["Instance"])] = r["RPM"]
-        t, keep = _monotonic(np.array(times) * 1e-6, "esc", nonmono, gaps)
+        t, keep = _monotonic(np.array(times) / 1e6, "esc", nonmono, gaps)
         esc = EscStream(_frozen(t), _frozen(rpm[keep]))
     if not counts:
         raise RecordingError(f"{path}: no dataflash records found")
