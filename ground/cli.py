@@ -15,6 +15,11 @@ import sys
 SUBCOMMANDS = {
     "sim": ("hil.sim", "open-loop simulation of a commands CSV to a .tlog recording"),
     "identify": ("ground.identify.cli", "the seed papers' identification methods: thrust, free-decay, pendulum, tables, azimuth"),
+    "diagnose": ("ground.diagnose.cli", "where simulation and a recording differ, the missing physics named, fitted and shown"),
+    "prove": ("ground.prove", "diagnose proven on plant recordings with concealed effects: prove.json and a table"),
+    "demo": ("hil.demo", "plant + onboard loop + recorder over loopback UDP in lock-step: a scripted mission, scored"),
+    "onboard": ("onboard.cli", "the onboard loop on a MAVLink link (autopilot, HIL plant or log replay)"),
+    "hil": ("hil.cli", "the plant as a MAVLink sensor endpoint (or SITL JSON physics) for a controller"),
 }
 
 

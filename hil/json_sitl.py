@@ -187,8 +187,9 @@ class JsonSitlBackend:
         return self.last_reply
 
     def serve(self, host: str = "0.0.0.0", port: int = 9002, max_frames: int | None = None,
-              idle_timeout_s: float | None = None, on_frame=None, sock=None) -> None:
-        """Answer SITL frames on UDP until `max_frames` or `idle_timeout_s` without a packet."""
+              idle_timeout_s: float | None = None, on_frame=None, sock=None, duration_s: float | None = None) -> None:
+        """Answer SITL frames on UDP until `max_frames`, `duration_s` of physics time, or
+        `idle_timeout_s` without a packet."""
         own = sock is None
         if own:
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -196,7 +197,8 @@ class JsonSitlBackend:
             sock.bind((host, port))
         sock.settimeout(idle_timeout_s)
         try:
-            while max_frames is None or self.frames < max_frames:
+            while (max_frames is None or self.frames < max_frames) and (
+                    duration_s is None or self.time_s < duration_s - 1e-9):
                 try:
                     data, addr = sock.recvfrom(65535)
                 except socket.timeout:

@@ -293,6 +293,7 @@ class OnboardLoop:
         self._next_heartbeat = -math.inf
         self._was_enabled = False
         self._started = False
+        self._last_rx_wall = time.monotonic()
 
     @property
     def armed(self) -> bool:
@@ -312,12 +313,17 @@ class OnboardLoop:
             if self.ground is not None:
                 self.ground.send(hb)
 
-    def run(self, duration_s: float | None = None, stop=None) -> None:
-        """Poll until `stop()` is true or the clock passes `duration_s` (clock time)."""
+    def run(self, duration_s: float | None = None, stop=None, idle_exit_s: float | None = None) -> str:
+        """Poll until `stop()` is true, the clock reaches `duration_s` (clock time; the last tick
+        before it), or nothing arrives for `idle_exit_s` of wall time. Returns why it stopped."""
         self.start()
-        while not (stop is not None and stop()):
-            if duration_s is not None and self.clock.now() >= duration_s:
-                break
+        while True:
+            if stop is not None and stop():
+                return "stopped"
+            if duration_s is not None and self.clock.now() >= duration_s - 0.5 * self.period_s:
+                return "duration reached"
+            if idle_exit_s is not None and time.monotonic() - self._last_rx_wall > idle_exit_s:
+                return f"nothing received for {idle_exit_s:g} s"
             self.poll()
 
     def poll(self) -> None:
@@ -334,6 +340,7 @@ class OnboardLoop:
         wait = self.clock.wait_s(self._next_tick) if self._next_tick is not None else 0.1
         m = self.link.recv(wait)
         if m is not None:
+            self._last_rx_wall = time.monotonic()
             self.handle(m)
         if self.ground is not None:
             g = self.ground.recv(0.0)

@@ -1,0 +1,424 @@
+"""`jetloop demo`: the plant, the onboard loop and a ground recorder over loopback UDP, in lock-step.
+
+Three parties talk MAVLink over real sockets on 127.0.0.1:
+- the plant (hil.endpoint.HilEndpoint around hil.plant.Plant, every effect of the vehicle file on)
+  plays the autopilot's sensor side and injects the scripted mission's ground setpoints;
+- the onboard loop (onboard.loop.OnboardLoop: estimator, controller, transient compensation, QP
+  allocation) flies it, answering every frame with HIL_ACTUATOR_CONTROLS;
+- a recorder plays the ground station, writing the onboard telemetry to its own .tlog.
+The onboard loop and the recorder run in their own processes (forked; threads where fork is not
+available). The plant advances only when the controller has answered, so the run is
+deterministic and as fast as the CPU allows; the same seed gives the same recording byte for byte.
+
+Mission (reference vehicle): arm at 1 s; dive to 0.5 m; hold; yaw to 90 deg; forward at 0.3 m/s
+for 5 s; stop; surface. Tracking errors are RMS of the plant's true state against the setpoint,
+over each leg after a settling allowance (`Leg.settle_s`), so they measure holding, not the
+reference's own transition time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing as mp
+import queue
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hil.endpoint import EndpointError, Faults, HilEndpoint
+from hil.plant import Plant
+from onboard.link import Link
+from onboard.loop import LoopConfig, OnboardLoop, VehicleClock, arm_command, body_velocity_target, depth_yaw_target
+from onboard.vehicle import Vehicle, load_vehicle
+
+
+# ------------------------------------------------------------------------------------------------
+# The mission
+
+
+@dataclass(frozen=True)
+class Leg:
+    """From t0_s on, the ground asks for this (None: not part of this leg's demand)."""
+
+    t0_s: float
+    name: str
+    depth_m: float | None = None
+    yaw_rad: float | None = None
+    surge_m_s: float | None = None
+    settle_s: float = 4.0  # excluded from the tracking statistics after the leg starts
+
+
+@dataclass(frozen=True)
+class Mission:
+    legs: tuple
+    duration_s: float
+    arm_s: float = 1.0
+
+    def setpoints(self) -> list:
+        """(vehicle time, ground message) pairs the plant endpoint injects."""
+        out = [(self.arm_s, arm_command(True))]
+        for leg in self.legs:
+            if leg.depth_m is not None or leg.yaw_rad is not None:
+                out.append((leg.t0_s, depth_yaw_target(leg.depth_m, leg.yaw_rad)))
+            if leg.surge_m_s is not None:
+                out.append((leg.t0_s, body_velocity_target(leg.surge_m_s, 0.0)))
+        return out
+
+    def demand_at(self, t: float) -> dict:
+        """The setpoint in force at t (legs carry forward what they do not change) and its leg."""
+        cur = {"depth_m": None, "yaw_rad": None, "surge_m_s": None, "leg": None}
+        for leg in self.legs:
+            if leg.t0_s <= t + 1e-9:
+                for k in ("depth_m", "yaw_rad", "surge_m_s"):
+                    if getattr(leg, k) is not None:
+                        cur[k] = getattr(leg, k)
+                cur["leg"] = leg
+        return cur
+
+
+def reference_mission() -> Mission:
+    """Dive to 0.5 m, hold, yaw 90 deg, forward 0.3 m/s for 5 s, stop, surface."""
+    return Mission(
+        legs=(
+            Leg(1.0, "dive", depth_m=0.5, yaw_rad=0.0, surge_m_s=0.0, settle_s=5.0),
+            Leg(8.0, "hold", settle_s=0.0),
+            Leg(11.0, "yaw 90", yaw_rad=math.pi / 2, settle_s=4.0),
+            Leg(17.0, "forward", surge_m_s=0.3, settle_s=2.0),
+            Leg(22.0, "stop", surge_m_s=0.0, settle_s=2.0),
+            Leg(26.0, "surface", depth_m=0.0, settle_s=4.0),
+        ),
+        duration_s=32.0,
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# Scoring (pure)
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def tracking_errors(truth, mission: Mission, surface_m: float = 0.0) -> dict:
+    """RMS errors of the true state against the setpoint, leg by leg after its settling time.
+
+    depth: over legs asking for a depth below the surface; yaw: wherever a yaw is asked;
+    speed: body surge u wherever a surge speed is asked.
+    """
+    e_depth, e_yaw, e_speed = [], [], []
+    for s in truth:
+        d = mission.demand_at(s.time_s)
+        leg = d["leg"]
+        if leg is None or s.time_s < leg.t0_s + leg.settle_s:
+            continue
+        depth = s.pos_ned_m[2] - surface_m
+        if d["depth_m"] is not None and d["depth_m"] > 0:
+            e_depth.append(depth - d["depth_m"])
+        if d["yaw_rad"] is not None:
+            e_yaw.append(float(_wrap(s.euler_rad[2] - d["yaw_rad"])))
+        if d["surge_m_s"] is not None:
+            e_speed.append(s.nu[0] - d["surge_m_s"])
+    rms = lambda e: float(np.sqrt(np.mean(np.square(e)))) if e else float("nan")  # noqa: E731
+    return {"depth_rms_m": rms(e_depth), "yaw_rms_rad": rms(e_yaw), "speed_rms_m_s": rms(e_speed),
+            "depth_max_m": float(np.max(np.abs(e_depth))) if e_depth else float("nan")}
+
+
+# ------------------------------------------------------------------------------------------------
+# The three parties
+
+
+def _onboard_main(vehicle, link, ground, config, stop, results):
+    """The onboard process: build the loop (compiles on a first run), fly until told to stop."""
+    try:
+        loop = OnboardLoop(vehicle, link, VehicleClock(), config, ground=ground)
+        loop.run(stop=stop.is_set)
+        summary = loop.stats.summary()
+        summary["link"] = link.stats()
+        summary["estimator_rejected"] = int(loop.estimator.health.rejected_total)
+        results.put(("onboard", summary))
+    except Exception as exc:  # reported to the parent, which prints it
+        results.put(("onboard", {"error": f"{type(exc).__name__}: {exc}"}))
+
+
+def _recorder_main(link, path, stop, results):
+    """The ground recorder: every telemetry packet into a .tlog, stamped with vehicle time."""
+    from hil.tlog import FIXED_EPOCH_US, TlogWriter
+
+    counts: dict = {}
+    t_us = 0
+    try:
+        with TlogWriter(path) as tlog:
+            while not stop.is_set():
+                m = link.recv(0.1)
+                while m is not None:
+                    name = m.get_type()
+                    counts[name] = counts.get(name, 0) + 1
+                    if hasattr(m, "time_usec") and name != "SERVO_OUTPUT_RAW":
+                        t_us = max(t_us, int(m.time_usec))
+                    elif hasattr(m, "time_boot_ms"):
+                        t_us = max(t_us, int(m.time_boot_ms) * 1000)
+                    tlog.write_packet(bytes(m.get_msgbuf()), FIXED_EPOCH_US + t_us, name)
+                    m = link.recv(0.0)
+        results.put(("recorder", {"messages": counts, "link": link.stats()}))
+    except Exception as exc:
+        results.put(("recorder", {"error": f"{type(exc).__name__}: {exc}"}))
+
+
+@dataclass
+class ClosedLoopResult:
+    truth: list
+    commands: list  # (t, command applied by the plant)
+    endpoint: dict
+    onboard: dict
+    recorder: dict
+    wall_s: float
+    tlog: Path | None = None
+    telemetry_tlog: Path | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def run_closed_loop(
+    vehicle: Vehicle,
+    setpoints,
+    duration_s: float,
+    seed: int = 0,
+    config: LoopConfig = LoopConfig(),
+    out_dir: Path | None = None,
+    faults: Faults = Faults(),
+    depth_m: float = 0.0,
+    processes: bool = True,
+    start_timeout_s: float = 300.0,
+    progress=None,
+) -> ClosedLoopResult:
+    """Plant + onboard + recorder over loopback UDP in lock-step; returns what happened."""
+    use_fork = processes and "fork" in mp.get_all_start_methods()
+    ctx = mp.get_context("fork") if use_fork else None
+    ep_link = Link("udpin:127.0.0.1:0", source_system=1, source_component=1)
+    ob_link = Link(f"udpout:127.0.0.1:{ep_link.local_address[1]}", source_system=1, source_component=191)
+    rec_link = Link("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    gnd_link = Link(f"udpout:127.0.0.1:{rec_link.local_address[1]}", source_system=1, source_component=191)
+    tlog_path = telemetry_path = None
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tlog_path = out_dir / "mission.tlog"
+        telemetry_path = out_dir / "telemetry.tlog"
+    if use_fork:
+        stop, results = ctx.Event(), ctx.Queue()
+        start = lambda target, args: ctx.Process(target=target, args=args, daemon=True)  # noqa: E731
+    else:
+        stop, results = threading.Event(), queue.Queue()
+        start = lambda target, args: threading.Thread(target=target, args=args, daemon=True)  # noqa: E731
+    rec_target = telemetry_path if telemetry_path is not None else Path("/dev/null")
+    parties = [
+        start(_recorder_main, (rec_link, rec_target, stop, results)),
+        start(_onboard_main, (vehicle, ob_link, gnd_link, config, stop, results)),
+    ]
+    for p in parties:
+        p.start()
+    if use_fork:  # the children own these now
+        ob_link.close()
+        gnd_link.close()
+        rec_link.close()
+    from hil.tlog import TlogWriter
+
+    tlog = TlogWriter(tlog_path) if tlog_path is not None else None
+    plant = Plant(vehicle, dt_s=0.001, seed=seed, depth_m=depth_m)
+    ep = HilEndpoint(vehicle, ep_link, plant, control_period_s=1.0 / config.control_rate_hz, lockstep=True,
+                     setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=30.0)
+    got: dict = {}
+    wall0 = time.perf_counter()
+    try:
+        if progress:
+            progress("waiting for the onboard loop (its first start compiles the model, up to a minute)")
+        try:
+            ep.start(wait_s=start_timeout_s)
+        except EndpointError:
+            _drain(results, got, 0.5)
+            if "onboard" in got and "error" in got["onboard"]:
+                raise EndpointError(f"the onboard loop failed to start: {got['onboard']['error']}") from None
+            raise
+        wall0 = time.perf_counter()
+        if progress:
+            progress(f"flying {duration_s:.0f} s of mission in lock-step")
+        n = int(round(duration_s * config.control_rate_hz))
+        while ep.k < n:
+            ep.step()
+            if progress and ep.k % int(5 * config.control_rate_hz) == 0:
+                progress(f"  t = {ep.time_s:5.1f} s")
+    finally:
+        wall = time.perf_counter() - wall0
+        stop.set()
+        if tlog is not None:
+            tlog.close()
+        _drain(results, got, 20.0, want=("onboard", "recorder"))
+        for p in parties:
+            p.join(5.0)
+            if use_fork and p.is_alive():
+                p.terminate()
+        ep_link.close()
+    st = ep.stats
+    endpoint = {"periods": st.periods, "commands_applied": st.commands_applied, "resends": st.resends,
+                "stale_replies": st.stale_replies, "bad_commands": st.bad_commands, "link": ep_link.stats()}
+    return ClosedLoopResult(ep.truth, ep.commands, endpoint, got.get("onboard", {}), got.get("recorder", {}),
+                            wall, tlog_path, telemetry_path)
+
+
+def _drain(results, got: dict, timeout_s: float, want=()) -> None:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        left = deadline - time.monotonic()
+        if want and all(w in got for w in want):
+            return
+        if left <= 0:
+            return
+        try:
+            who, what = results.get(timeout=min(left, 0.5) if want else 0.05)
+            got[who] = what
+        except queue.Empty:
+            if not want:
+                return
+
+
+# ------------------------------------------------------------------------------------------------
+# Summary, plot, CLI
+
+
+def summarise(result: ClosedLoopResult, mission: Mission, vehicle: Vehicle) -> dict:
+    err = tracking_errors(result.truth, mission, vehicle.environment.surface_depth)
+    ob = result.onboard
+    return {
+        **{k: err[k] for k in ("depth_rms_m", "yaw_rms_rad", "speed_rms_m_s")},
+        "step_median_ms": ob.get("step_median_ms", float("nan")),
+        "step_p99_ms": ob.get("step_p99_ms", float("nan")),
+        "limit_violations": ob.get("limit_violations", -1),
+        "depth_max_abs_m": err["depth_max_m"],
+        "qp_solve_median_us": ob.get("solve_median_us", float("nan")),
+        "qp_solve_p99_us": ob.get("solve_p99_us", float("nan")),
+        "allocation_fallbacks": ob.get("allocation_fallbacks", -1),
+        "allocation_weighted_error_mean": ob.get("weighted_error_mean", float("nan")),
+        "failsafe_entries": ob.get("failsafe_entries", -1),
+        "control_steps": ob.get("steps", 0),
+        "lockstep_periods": result.endpoint["periods"],
+        "mission_s": mission.duration_s,
+        "wall_s": result.wall_s,
+    }
+
+
+def table(summary: dict) -> str:
+    rows = [
+        ("tracking", "depth RMS", f"{summary['depth_rms_m'] * 100:.1f} cm"),
+        ("", "depth max |error|", f"{summary['depth_max_abs_m'] * 100:.1f} cm"),
+        ("", "yaw RMS", f"{math.degrees(summary['yaw_rms_rad']):.2f} deg"),
+        ("", "surge speed RMS", f"{summary['speed_rms_m_s'] * 100:.1f} cm/s"),
+        ("allocation", "QP solve median / p99", f"{summary['qp_solve_median_us']:.0f} / {summary['qp_solve_p99_us']:.0f} us"),
+        ("", "fallbacks", f"{summary['allocation_fallbacks']}"),
+        ("", "mean weighted wrench error", f"{summary['allocation_weighted_error_mean']:.3f}"),
+        ("", "limit violations", f"{summary['limit_violations']}"),
+        ("loop", "onboard step median / p99", f"{summary['step_median_ms']:.2f} / {summary['step_p99_ms']:.2f} ms"),
+        ("", "control steps", f"{summary['control_steps']}"),
+        ("", "failsafe entries", f"{summary['failsafe_entries']}"),
+        ("run", "mission / wall time", f"{summary['mission_s']:.0f} s / {summary['wall_s']:.1f} s"),
+    ]
+    w0 = max(len(r[0]) for r in rows)
+    w1 = max(len(r[1]) for r in rows)
+    return "\n".join(f"  {a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows)
+
+
+def plot(result: ClosedLoopResult, mission: Mission, vehicle: Vehicle, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.array([s.time_s for s in result.truth])
+    depth = np.array([s.pos_ned_m[2] for s in result.truth]) - vehicle.environment.surface_depth
+    yaw = np.degrees([s.euler_rad[2] for s in result.truth])
+    u = np.array([s.nu[0] for s in result.truth])
+    dem = [mission.demand_at(x) for x in t]
+    sp = lambda k, f=lambda v: v: np.array([f(d[k]) if d[k] is not None else np.nan for d in dem])  # noqa: E731
+    k = vehicle.n_units
+    ct = np.array([c[0] for c in result.commands])
+    cmd = np.array([c[1] for c in result.commands]) if result.commands else np.zeros((0, 3 * k))
+    fig, ax = plt.subplots(5, 1, figsize=(9, 11), sharex=True)
+    ax[0].plot(t, depth, label="depth (true)")
+    ax[0].plot(t, sp("depth_m"), "--", label="setpoint")
+    ax[0].invert_yaxis()
+    ax[0].set_ylabel("depth (m)")
+    ax[1].plot(t, yaw, label="yaw (true)")
+    ax[1].plot(t, sp("yaw_rad", math.degrees), "--", label="setpoint")
+    ax[1].set_ylabel("yaw (deg)")
+    ax[2].plot(t, u, label="surge u (true)")
+    ax[2].plot(t, sp("surge_m_s"), "--", label="setpoint")
+    ax[2].set_ylabel("u (m/s)")
+    if len(ct):
+        ax[3].plot(ct, cmd[:, :k])
+        ax[4].plot(ct, np.degrees(cmd[:, k:2 * k]), "-")
+        ax[4].plot(ct, np.degrees(cmd[:, 2 * k:]), ":")
+    ax[3].set_ylabel("jet n_cmd (rev/s)")
+    ax[4].set_ylabel("joints (deg)\naz -, el :")
+    ax[4].set_xlabel("vehicle time (s)")
+    for a in ax[:3]:
+        a.legend(loc="best", fontsize=8)
+    for a in ax:
+        a.grid(alpha=0.3)
+        for leg in mission.legs:
+            a.axvline(leg.t0_s, color="grey", lw=0.5)
+    ax[0].set_title(f"jetloop demo: {vehicle.name}, lock-step HIL over loopback UDP")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def configure(parser) -> None:
+    parser.add_argument("--out", default="jetloop-demo", metavar="DIR",
+                        help="directory for mission.tlog, telemetry.tlog, mission.png, summary.json (default ./jetloop-demo/)")
+    parser.add_argument("--vehicle", default=None, help="vehicle TOML (default: the reference vehicle asr4)")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed of the plant (default 0)")
+    parser.add_argument("--allocator", choices=("qp", "baseline"), default="qp",
+                        help="qp: OSQP allocation (default); baseline: pseudo-inverse with clipping")
+    parser.add_argument("--no-compensation", action="store_true", help="turn the seed-004 transient compensation off")
+    parser.add_argument("--threads", action="store_true", help="run the parties as threads instead of processes")
+
+
+def run(args) -> int:
+    from onboard.vehicle import VehicleFileError
+
+    try:
+        vehicle = load_vehicle(args.vehicle)
+    except VehicleFileError as exc:
+        print(f"jetloop demo: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"jetloop demo: cannot create output directory {out}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    mission = reference_mission()
+    config = LoopConfig(allocator=args.allocator, compensation=not args.no_compensation)
+    say = lambda s: print(s, flush=True)  # noqa: E731
+    say(f"jetloop demo: plant + onboard + recorder over 127.0.0.1, lock-step, vehicle {vehicle.name}, seed {args.seed}")
+    try:
+        result = run_closed_loop(vehicle, mission.setpoints(), mission.duration_s, seed=args.seed, config=config,
+                                 out_dir=out, processes=not args.threads, progress=say)
+    except EndpointError as exc:
+        print(f"jetloop demo: {exc}", file=sys.stderr)
+        return 1
+    if "error" in result.onboard:
+        print(f"jetloop demo: the onboard loop failed: {result.onboard['error']}", file=sys.stderr)
+        return 1
+    summary = summarise(result, mission, vehicle)
+    plot(result, mission, vehicle, out / "mission.png")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    say("")
+    say(table(summary))
+    say("")
+    say(f"wrote {out / 'mission.tlog'} (plant side: sensors, commands, truth), {out / 'telemetry.tlog'} (ground),")
+    say(f"      {out / 'mission.png'}, {out / 'summary.json'}")
+    return 0
