@@ -461,6 +461,8 @@ class Estimator:
         self._H_gyro[:, X_RATES:X_RATES + 3] = np.eye(3)  # h = w + b_g
         self._H_gyro[:, X_BIAS:X_BIAS + 3] = np.eye(3)
         self._H_depth = np.zeros((1, N_X))
+        self._H_depth = np.zeros((1, N_X))
+        self._H_depth[0, X_DEPTH] = 1.0  # h = depth
         self._H_imu = np.zeros((6, N_X))
         self._H_imu[0:3] = self._H_gyro
         self._R_imu = _block_diag([self._R_gyro, self._R_accel])
@@ -611,11 +613,12 @@ class Estimator:
             return
         d = self._ekf.x[X_DEPTH]
         if d <= 0.0 and z <= 0.0:
-            self._accepted[_DEPTH] += 1  # consistent, and the saturated sensor says nothing more
+            # the sensor reads max(depth, 0): at or above the surface it says nothing more
+            self._accepted[_DEPTH] += 1
             return
-        H = np.zeros((1, N_X))
-        H[0, X_DEPTH] = 1.0 if d > 0.0 else 0.0  # pressure saturates above the surface
-        self._update([(_DEPTH, np.array([z]), H, np.array([max(d, 0.0)]), self._R_depth)])
+        # otherwise h = depth, H = e_depth: a reading > 0 says the vehicle is that deep whatever
+        # the estimate; a reading of 0 with an estimate below the surface pulls it up to 0
+        self._update([(_DEPTH, np.array([max(z, 0.0)]), self._H_depth, np.array([d]), self._R_depth)])
 
     def update_attitude(self, sample: AttitudeSample) -> None:
         """Fuse an ATTITUDE (roll, pitch, yaw); yaw innovation wrapped to [-pi, pi)."""

@@ -292,3 +292,27 @@ def test_compiled_backend_equals_filterpy(vehicle):
     assert a.health.rejected_nonfinite[STREAMS.index("attitude")] == 1
     with pytest.raises(ValueError, match="backend"):
         Estimator(vehicle, backend="ukf")
+
+
+def test_default_start_at_the_surface_locks_onto_the_first_depth(vehicle):
+    """Built with no depth (0 m, at the surface), the first readings at 0.6 m are taken, not gated."""
+    est = Estimator(vehicle)
+    assert est.estimate.depth_m == 0.0
+    for _ in range(10):
+        est.predict(0.02, np.zeros(12))
+        est.update_depth(0.6)
+    assert est.estimate.depth_m == pytest.approx(0.6, abs=0.005)
+    assert est.health.rejected_gated == (0, 0, 0, 0)
+
+
+def test_saturated_pressure_above_the_surface(vehicle):
+    """The sensor reads max(depth, 0): 0 with the estimate above the surface carries no information;
+    0 with the estimate 0.3 m deep pulls it up to the surface."""
+    est = Estimator(vehicle, depth_m=-0.05)
+    x = est._ekf.x.copy()
+    est.update_depth(0.0)
+    np.testing.assert_array_equal(est._ekf.x, x)
+    est = Estimator(vehicle, depth_m=0.3)
+    for _ in range(5):
+        est.update_depth(0.0)
+    assert abs(est.estimate.depth_m) < 0.01
