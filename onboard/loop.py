@@ -205,6 +205,7 @@ class LoopConfig:
 class LoopStats:
     steps: int = 0
     step_time_s: list = field(default_factory=list)  # wall time of estimate+control+compensate+allocate
+    step_cpu_s: list = field(default_factory=list)  # the same step's CPU time (this thread)
     solve_time_s: list = field(default_factory=list)
     weighted_error: list = field(default_factory=list)
     fallbacks: int = 0
@@ -217,12 +218,15 @@ class LoopStats:
 
     def summary(self) -> dict:
         st = np.asarray(self.step_time_s) * 1e3
+        cpu = np.asarray(self.step_cpu_s) * 1e3
         qp = np.asarray(self.solve_time_s) * 1e6
         return {
             "steps": self.steps,
             "step_median_ms": float(np.median(st)) if st.size else float("nan"),
             "step_p99_ms": float(np.percentile(st, 99)) if st.size else float("nan"),
             "step_max_ms": float(st.max()) if st.size else float("nan"),
+            "step_cpu_median_ms": float(np.median(cpu)) if cpu.size else float("nan"),
+            "step_cpu_p99_ms": float(np.percentile(cpu, 99)) if cpu.size else float("nan"),
             "solve_median_us": float(np.median(qp)) if qp.size else float("nan"),
             "solve_p99_us": float(np.percentile(qp, 99)) if qp.size else float("nan"),
             "allocation_fallbacks": self.fallbacks,
@@ -463,6 +467,7 @@ class OnboardLoop:
     def step(self, t: float) -> None:
         """One control period at clock time t: estimate, failsafe, control, compensate, allocate, send."""
         t0 = time.perf_counter()
+        c0 = time.thread_time()
         self._run_estimator()
         est = self.estimator.estimate
         was_failsafe = self.failsafe_active
@@ -503,6 +508,7 @@ class OnboardLoop:
         self._was_enabled = self.armed
         self.command = command
         elapsed = time.perf_counter() - t0
+        self.stats.step_cpu_s.append(time.thread_time() - c0)
         self.stats.step_time_s.append(elapsed)
         self.stats.steps += 1
         self.stats.commands.append((t, command.copy()))
