@@ -20,6 +20,8 @@ SUBCOMMANDS = {
     "demo": ("hil.demo", "plant + onboard loop + recorder over loopback UDP in lock-step: a scripted mission, scored"),
     "onboard": ("onboard.cli", "the onboard loop on a MAVLink link (autopilot, HIL plant or log replay)"),
     "hil": ("hil.cli", "the plant as a MAVLink sensor endpoint (or SITL JSON physics) for a controller"),
+    "ground": ("ground.ground_cli", "ground station: live telemetry view, .tlog recorder, commands, stream rates, signing"),
+    "plot": ("ground.plot", "standard plots of a .tlog/.bin recording (HIL, sim or ArduSub) as PNGs and index.html"),
 }
 
 
