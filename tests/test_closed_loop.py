@@ -177,3 +177,77 @@ def test_lock_step_over_a_serial_line_with_raw_pwm(tmp_path):
     expect = np.array([pwm_to_command(V, command_to_pwm(V, sent[k])) for k in ticks])
     got = np.array([applied[k] for k in ticks])
     assert got == pytest.approx(expect, abs=1e-12)  # PWM quantisation is all that differs
+
+
+# -- the loop's inputs, message by message ----------------------------------------------------------
+
+from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
+
+from onboard.loop import IGNORE_VX, IGNORE_VY, apply_position_target, manual_axes  # noqa: E402
+
+
+@pytest.fixture
+def loop_pair():
+    from onboard.link import Link
+    from onboard.loop import OnboardLoop, VehicleClock
+
+    ground = Link("udpin:127.0.0.1:0")
+    link = Link(f"udpout:127.0.0.1:{ground.local_address[1]}")
+    loop = OnboardLoop(V, link, VehicleClock())
+    loop.start()
+    assert ground.recv(2.0).get_type() == "HEARTBEAT"
+    yield loop, ground
+    link.close()
+    ground.close()
+
+
+def test_position_target_frames_hand_computed():
+    from onboard.control import Setpoint
+
+    sp = apply_position_target(Setpoint(), depth_yaw_target(0.7, 1.0), yaw_estimate_rad=0.3)
+    assert (sp.depth_m, sp.yaw_rad, sp.velocity_body_m_s) == (0.7, 1.0, (0.0, 0.0, None))
+    sp = apply_position_target(sp, body_velocity_target(0.2, -0.1), yaw_estimate_rad=0.3)
+    assert (sp.depth_m, sp.yaw_rad, sp.velocity_body_m_s) == (0.7, 1.0, (0.2, -0.1, None))
+    # a NED velocity (north 0.2) seen from a vehicle heading 90 deg east: u = 0, v = -0.2
+    ned = body_velocity_target(0.2, 0.0)
+    ned.coordinate_frame = mav.MAV_FRAME_LOCAL_NED
+    sp2 = apply_position_target(sp, ned, yaw_estimate_rad=math.pi / 2)
+    assert sp2.velocity_body_m_s[0] == pytest.approx(0.0, abs=1e-12)
+    assert sp2.velocity_body_m_s[1] == pytest.approx(-0.2)
+    assert not ned.type_mask & (IGNORE_VX | IGNORE_VY)
+    # joystick: ArduSub's z 0..1000 with 500 neutral; 750 = half up = heave_down -0.5
+    m = mav.MAVLink_manual_control_message(1, 500, -1000, 750, 250, 0)
+    ax = manual_axes(m)
+    assert (ax.surge, ax.sway, ax.heave_down, ax.yaw_right) == (0.5, -1.0, -0.5, 0.25)
+
+
+def test_best_imu_stream_wins_and_bad_values_are_counted(loop_pair):
+    loop, _ = loop_pair
+    raw = mav.MAVLink_raw_imu_message(10_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)
+    loop.handle(raw)
+    assert loop._imu_rank == 4
+    hi = mav.MAVLink_highres_imu_message(20_000, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0b111111, 0)
+    loop.handle(hi)
+    loop.handle(raw)  # a worse stream once the best one is present: ignored
+    loop.handle(hi)  # the same sample again: ignored
+    assert loop.stats.ignored_imu == 2
+    nan = mav.MAVLink_highres_imu_message(30_000, float("nan"), 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 63, 0)
+    loop.handle(nan)
+    bad_sp = depth_yaw_target(float("inf"), 0.0)
+    loop.handle(bad_sp)
+    assert loop.stats.rejected_inputs == 2
+    assert [q[2] for q in loop._queue] == ["imu", "imu"]
+
+
+def test_arm_is_refused_without_imu_and_acknowledged(loop_pair):
+    loop, ground = loop_pair
+    loop.handle(arm_command(True))
+    acks = [m for m in iter(lambda: ground.recv(0.5), None) if m.get_type() == "COMMAND_ACK"]
+    assert acks[0].result == mav.MAV_RESULT_TEMPORARILY_REJECTED and not loop.armed
+    loop.handle(mav.MAVLink_highres_imu_message(1_000_000, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 63, 0))
+    loop.handle(arm_command(True))
+    acks = [m for m in iter(lambda: ground.recv(0.5), None) if m.get_type() == "COMMAND_ACK"]
+    assert acks[-1].result == mav.MAV_RESULT_ACCEPTED and loop.armed
+    loop.handle(mav.MAVLink_command_long_message(1, 1, 31999, 0, 0, 0, 0, 0, 0, 0, 0))  # unknown command
+    acks = [m for m in iter(lambda: ground.recv(0.5), None) if m.get_type() == "COMMAND_ACK"]
+    assert acks[-1].result == mav.MAV_RESULT_UNSUPPORTED
