@@ -183,3 +183,44 @@ def test_over_udp_replies_to_the_sender():
         sock.close()
     assert stamps == pytest.approx([k / 400 for k in range(1, 51)])
     assert backend.bad_packets == 1
+
+
+def test_jetloop_hil_json_sitl_command():
+    """`jetloop hil --json-sitl` as its own process answers SITL frames until its duration."""
+    import subprocess
+    import sys
+    import time
+
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ground.cli", "hil", "--json-sitl", "--link", f"udpin:127.0.0.1:{port}",
+         "--duration", "0.05", "--depth", "0.5"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    client.settimeout(0.5)
+    replies = []
+    try:
+        deadline = time.monotonic() + 60
+        k = 0
+        while len(replies) < 20 and time.monotonic() < deadline:
+            client.sendto(sitl_frame(400, k, [1500] * 16), ("127.0.0.1", port))
+            try:
+                r = sitl_parse(client.recvfrom(65000)[0])
+            except socket.timeout:
+                continue  # not listening yet: SITL re-sends the same frame, so do we
+            if replies and r["timestamp"] == replies[-1]["timestamp"]:
+                continue  # the answer to a re-sent frame: the same state again
+            replies.append(r)
+            k += 1
+        out, err = proc.communicate(timeout=60)
+    finally:
+        client.close()
+        if proc.poll() is None:
+            proc.kill()
+    assert [r["timestamp"] for r in replies] == pytest.approx([k / 400 for k in range(1, 21)])
+    assert proc.returncode == 0, err
+    assert "20 frames" in out
