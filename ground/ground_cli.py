@@ -29,18 +29,19 @@ class GroundSession:
     """Link + Station + Recorder; `poll(timeout_s)` handles what has arrived, `send(msg)` sends."""
 
     def __init__(self, connection: str, vehicle=None, record_dir=None, key: bytes | None = None,
-                 rates: dict | None = None, commands=(), max_bytes: int | None = None, clock=time.time):
+                 rates: dict | None = None, commands=(), max_bytes: int | None = None, clock=time.time,
+                 limits=None):
         from onboard.link import Link
 
         from ground.commands import enable_signing, message_interval
         from ground.recorder import DEFAULT_MAX_BYTES, Recorder
-        from ground.station import Station
+        from ground.station import Limits, Station
 
         self.clock = clock
         self.link = Link(connection, source_system=GCS_SYSTEM, source_component=GCS_COMPONENT)
         if key is not None:
             enable_signing(self.link.mav, key)
-        self.station = Station(vehicle, own_system=GCS_SYSTEM)
+        self.station = Station(vehicle, limits or Limits(), own_system=GCS_SYSTEM)
         self.recorder = Recorder(record_dir, max_bytes=max_bytes or DEFAULT_MAX_BYTES, clock=clock) \
             if record_dir is not None else None
         self._startup = [message_interval(name, hz) for name, hz in (rates or {}).items()] + list(commands)
