@@ -597,6 +597,9 @@ class OnboardLoop:
             if out is not self.link:
                 self.link.send(hb)
             out.send(self._sys_status(step_s))
+            ms = codec.time_boot_ms(max(t, 0.0))
+            for name, value in est.health.as_dict().items():  # gating / NaN rejections per stream
+                out.send(mavlink.MAVLink_named_value_float_message(ms, name[:10].encode(), float(value)))
         if t + 1e-9 < self._next_telemetry:
             return
         self._next_telemetry = t + 1.0 / self.config.telemetry_rate_hz
