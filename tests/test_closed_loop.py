@@ -99,25 +99,37 @@ def test_reference_mission_tracks_within_bounds():
 
 @pytest.mark.slow
 def test_compensation_halves_the_disturbance_of_fast_re_vectoring():
-    """Surge reversals at depth make the azimuths swing fast (jets cannot push backwards); the
-    seed-004 transients then disturb yaw and depth. With compensation the RMS yaw and depth
-    deviations over the reversals must be at most half of those without."""
+    """Yaw reversals of 90 deg every 1.5 s at 0.4 m swing the azimuths fast. The disturbance is what
+    the seed-004 transients add to the flight: the difference, in yaw and in position, between a
+    plant with `azimuth_transient` on and the same plant with it off (same controller, same seed,
+    same noise). With compensation that difference must be at most half of what it is without."""
     legs = [Leg(0.5, "dive", depth_m=0.4, yaw_rad=0.0, surge_m_s=0.0)]
     t = 4.0
     for i in range(6):
-        legs.append(Leg(t, f"rev{i}", surge_m_s=0.25 if i % 2 == 0 else -0.25))
+        legs.append(Leg(t, f"yaw{i}", yaw_rad=math.pi / 2 if i % 2 == 0 else 0.0, settle_s=0.0))
         t += 1.5
     mission = Mission(tuple(legs), duration_s=t)
     sp = mission.setpoints()
-    dev = {}
-    for comp in (False, True):
-        r = run_closed_loop(V, sp, mission.duration_s, seed=5, config=LoopConfig(compensation=comp))
+    smooth = V.with_effects(azimuth_transient=False)
+    runs = {
+        "reference": run_closed_loop(smooth, sp, mission.duration_s, seed=5, config=LoopConfig(compensation=False)),
+        "plain": run_closed_loop(V, sp, mission.duration_s, seed=5, config=LoopConfig(compensation=False)),
+        "compensated": run_closed_loop(V, sp, mission.duration_s, seed=5, config=LoopConfig(compensation=True)),
+    }
+
+    def track(r):
         win = [s for s in r.truth if s.time_s >= 4.0]
-        yaw = np.array([s.euler_rad[2] for s in win])
-        depth = np.array([s.pos_ned_m[2] for s in win])
-        dev[comp] = (float(np.sqrt(np.mean(yaw ** 2))), float(np.sqrt(np.mean((depth - 0.4) ** 2))))
-    assert dev[True][0] <= 0.5 * dev[False][0], dev
-    assert dev[True][1] <= 0.5 * dev[False][1], dev
+        return np.array([s.euler_rad[2] for s in win]), np.array([s.pos_ned_m for s in win])
+
+    yaw0, pos0 = track(runs["reference"])
+    dist = {}
+    for name in ("plain", "compensated"):
+        yaw, pos = track(runs[name])
+        dist[name] = (float(np.sqrt(np.mean(((yaw - yaw0 + np.pi) % (2 * np.pi) - np.pi) ** 2))),
+                      float(np.sqrt(np.mean(np.sum((pos - pos0) ** 2, axis=1)))))
+    assert dist["plain"][1] > 0.02, dist  # the transients do disturb this flight (the test can fail)
+    assert dist["compensated"][0] <= 0.5 * dist["plain"][0], dist
+    assert dist["compensated"][1] <= 0.5 * dist["plain"][1], dist
 
 
 # -- the same loop over a serial line ------------------------------------------------------------
