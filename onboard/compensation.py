@@ -70,7 +70,7 @@ def servo_motion(angle, command, dt_s, time_constant, rate_limit, limit):
     a' = clip((clip(a_cmd) - a) / tau, +-rate_limit). While |error| > rate_limit * tau the joint
     slews at the rate limit; after that the error decays as exp(-t / tau).
     """
-    return _servo_motion(np.asarray(angle, dtype=np.float64), np.asarray(command, dtype=np.float64),
+    return _servo_motion(np.array(angle, dtype=np.float64), np.array(command, dtype=np.float64),
                          float(dt_s), float(time_constant), float(rate_limit), float(limit))
 
 
@@ -162,6 +162,8 @@ class TransientCompensator:
         s = v.servo
         self.servo = (s.time_constant, s.rate_limit, s.angle_limit)
         self.reset(alpha_rad, beta_rad)
+        z = np.zeros(self.k)
+        self.predict(z, z, z)  # loads the compiled kernels now rather than in the first step
 
     def reset(self, alpha_rad=None, beta_rad=None) -> None:
         """Zero the filters (spec 6: transient states start at zero) and set the joint estimates."""
@@ -186,13 +188,13 @@ class TransientCompensator:
 
     def _predict(self, ra, rb, thrust_n, a0, b0, a1, b1) -> TransientPrediction:
         k = self.k
-        ra = np.ascontiguousarray(ra, dtype=np.float64)
-        rb = np.ascontiguousarray(rb, dtype=np.float64)
+        ra = np.array(ra, dtype=np.float64)  # writable copies: one compiled signature
+        rb = np.array(rb, dtype=np.float64)
         if not self.active:
             ra, rb = np.zeros(k), np.zeros(k)
         a_mid = 0.5 * (np.asarray(a0, float) + a1)
         b_mid = 0.5 * (np.asarray(b0, float) + b1)
-        T = np.ascontiguousarray(thrust_n, dtype=np.float64)
+        T = np.array(thrust_n, dtype=np.float64)
         wrench, force, mz, y, z1 = _predict(self.Ad, self.Bd, self.Cd, self.state, ra, rb, T, self.gain,
                                             a_mid, b_mid, self.geo.e1, self.geo.position)
         return TransientPrediction(

@@ -392,3 +392,21 @@ def test_bad_input_gives_a_clear_error(vehicle):
         AllocationConfig(axis_weights=(1, 1, 1))
     with pytest.raises(ValueError, match=r"effort_weight: expected a finite number >= 0"):
         AllocationConfig(effort_weight=-1.0)
+
+
+def test_change_penalty_applies_only_with_a_previous_command(vehicle):
+    """No previous command (first step, reset): nothing to change from, so the plan equals that of
+    an allocator without the change term. With one, the plan stays nearer to it."""
+    a, b = np.full(4, 0.1), np.full(4, 0.5)
+    tau1 = np.array([1.0, 0.0, -3.0, 0.0, 0.0, 0.0])
+    tau2 = np.array([-1.0, 0.8, -2.0, 0.0, 0.0, 0.1])
+    with_c = QpAllocator(vehicle, DT, AllocationConfig.from_vehicle(vehicle, change_weight=1.0, **RELAXED))
+    without = QpAllocator(vehicle, DT, AllocationConfig.from_vehicle(vehicle, change_weight=0.0, **RELAXED))
+    first, ref = with_c.allocate(tau1, a, b), without.allocate(tau1, a, b)
+    np.testing.assert_allclose(first.force_body_n, ref.force_body_n, atol=2e-3)
+    pulled = with_c.allocate(tau2, a, b)  # previous = first
+    free = without.allocate(tau2, a, b, commit=False)
+    assert np.linalg.norm(pulled.force_body_n - first.force_body_n) < np.linalg.norm(free.force_body_n - first.force_body_n)
+    with_c.reset()
+    again = with_c.allocate(tau2, a, b, commit=False)
+    np.testing.assert_allclose(again.force_body_n, free.force_body_n, atol=2e-3)
