@@ -38,6 +38,7 @@ from .mavlink_codec import CodecError
 from .pwm import command_to_normalised, command_to_pwm
 from .sensors import depth_from_pressure
 from .vehicle import Vehicle
+from ground.commands import accept_command
 
 IMU_RANK = {"HIGHRES_IMU": 0, "SCALED_IMU": 1, "SCALED_IMU2": 2, "SCALED_IMU3": 3, "RAW_IMU": 4}
 BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
@@ -48,6 +49,7 @@ IGNORE_YAW, IGNORE_YAW_RATE = 1024, 2048
 # Modes (HEARTBEAT.custom_mode, MAV_CMD_DO_SET_MODE param2): ArduSub's numbers where it has them
 MODES = {"stabilize": 0, "depth_hold": 2, "guided": 4, "manual": 19}
 MODE_NAMES = {v: k for k, v in MODES.items()}
+TELEMETRY_STREAMS = ("ATTITUDE", "NAMED_VALUE_FLOAT", "DEBUG_FLOAT_ARRAY")  # at telemetry_rate_hz unless asked
 
 
 # ------------------------------------------------------------------------------------------------
@@ -189,6 +191,7 @@ class LoopConfig:
     # costs thrust through the seed-004 axial loss (F1x is driven by |alpha'|): in closed loop the
     # jets then give ~30 % less than planned and depth is lost. 1.0 keeps the joints calm.
     allocation_change_weight: float = 1.0
+    signing_key: bytes | None = None  # MAVLink 2 signing on: unsigned commands refused (ground.commands)
 
     def __post_init__(self):
         if not (math.isfinite(self.control_rate_hz) and self.control_rate_hz > 0):
@@ -213,6 +216,7 @@ class LoopStats:
     failsafe_entries: int = 0
     arm_refusals: int = 0
     rejected_inputs: int = 0  # messages that did not decode (NaN / inf / malformed)
+    step_errors: int = 0  # steps where a collaborator raised: the jets got the safe command
     ignored_imu: int = 0  # IMU messages of a lower-ranked source or out of order
     commands: list = field(default_factory=list)  # (t, command) sent
 
@@ -235,6 +239,7 @@ class LoopStats:
             "failsafe_entries": self.failsafe_entries,
             "arm_refusals": self.arm_refusals,
             "rejected_inputs": self.rejected_inputs,
+            "step_errors": self.step_errors,
         }
 
 
@@ -284,6 +289,12 @@ class OnboardLoop:
         self.prediction = None
         self.demand = np.zeros(6)
         self.stats = LoopStats()
+        # the ground's signing and SET_MESSAGE_INTERVAL, onboard side (ground/commands.py)
+        from ground.commands import SigningState, StreamRates
+
+        self.signing = SigningState(config.signing_key)
+        self.rates = StreamRates({**{n: config.telemetry_rate_hz for n in TELEMETRY_STREAMS},
+                                  "SERVO_OUTPUT_RAW": config.control_rate_hz})  # the ground's copy
         self._queue: list = []  # (t, arrival order, kind, sample) awaiting the estimator
         self._order = 0
         self._imu_rank = len(IMU_RANK)
@@ -298,6 +309,7 @@ class OnboardLoop:
         self._was_enabled = False
         self._started = False
         self._last_rx_wall = time.monotonic()
+        self._next_error_text = -math.inf
 
     @property
     def armed(self) -> bool:
@@ -366,6 +378,8 @@ class OnboardLoop:
         """One received message: a sensor sample into the queue, a setpoint or command applied.
         What does not decode (NaN, inf, a field out of range) is counted and dropped."""
         name = m.get_type()
+        if not accept_command(m, self.signing):
+            return  # signing on and the command is not signed by the key (counted in self.signing)
         try:
             if name in IMU_RANK:
                 self._on_imu(m)
@@ -453,6 +467,8 @@ class OnboardLoop:
                     self.setpoint = Setpoint(manual=ManualAxes())
             else:
                 result = mavlink.MAV_RESULT_DENIED
+        elif cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            result = self.rates.handle(m)
         else:
             result = mavlink.MAV_RESULT_UNSUPPORTED
         ack = mavlink.MAVLink_command_ack_message(cmd, result, 0, 0, m.get_srcSystem(), m.get_srcComponent())
@@ -468,44 +484,20 @@ class OnboardLoop:
         """One control period at clock time t: estimate, failsafe, control, compensate, allocate, send."""
         t0 = time.perf_counter()
         c0 = time.thread_time()
-        self._run_estimator()
-        est = self.estimator.estimate
-        was_failsafe = self.failsafe_active
-        self.fs_state = self._fs.on_tick(self.fs_state, t, self.estimator.diverged,
-                                         self.estimator.health.diverged_reason)
-        if self.failsafe_active and not was_failsafe:
-            self.stats.failsafe_entries += 1
-            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, f"FAILSAFE {self.fs_state.reason}"[:50])
-        if self.armed:
-            if not self._was_enabled:  # joints start from the safe (neutral) command
-                self.controller.reset()
-                self.allocator.previous = None
-                if self.compensator is not None:
-                    self.compensator.reset()
-            achieved = None
-            if self.allocation is not None and self._was_enabled:
-                achieved = self.allocation.wrench_achieved if self.prediction is None else (
-                    np.asarray(self.allocation.wrench_achieved) + self.prediction.wrench_n)
-            self.demand = self.controller.step(est, self.setpoint, self.period_s, achieved=achieved).as_array()
-            if self.compensator is not None:
-                from .compensation import allocate_compensated
-
-                res = allocate_compensated(self.allocator, self.compensator, self.demand, nu_r=est.nu,
-                                           iterations=self.config.compensation_iterations)
-                alloc, self.prediction = res.allocation, res.prediction
-            else:
-                alloc = self.allocator.allocate(self.demand, nu_r=est.nu)
-            self.allocation = alloc
-            command = np.asarray(alloc.command, dtype=float)
-            self.stats.solve_time_s.append(alloc.solve_time_s)
-            if math.isfinite(alloc.weighted_error):
-                self.stats.weighted_error.append(float(alloc.weighted_error))
-            self.stats.fallbacks += int(bool(alloc.fallback))
-            self.stats.limit_violations += self._violations(command)
-        else:
+        failed = False
+        try:
+            est, command = self._compute(t)
+        except Exception as exc:  # the robot's loop never dies: safe output, counted and reported
+            failed = True
+            self.stats.step_errors += 1
+            est = self.estimator.estimate
             command = self._fs.safe_command(self.k)
             self.demand = np.zeros(6)
-        self._was_enabled = self.armed
+            self.allocator.previous = None
+            if t >= self._next_error_text:
+                self._next_error_text = t + 1.0
+                self._statustext(mavlink.MAV_SEVERITY_ERROR, f"step error, jets safe: {type(exc).__name__}: {exc}")
+        self._was_enabled = self.armed and not failed
         self.command = command
         elapsed = time.perf_counter() - t0
         self.stats.step_cpu_s.append(time.thread_time() - c0)
@@ -520,6 +512,46 @@ class OnboardLoop:
             else:
                 self._send_outputs(t, command)
                 self._telemetry(t, est, elapsed)
+
+    def _compute(self, t: float):
+        """Estimate, failsafe, control, compensate, allocate: (estimate, command) for this tick."""
+        self._run_estimator()
+        est = self.estimator.estimate
+        was_failsafe = self.failsafe_active
+        self.fs_state = self._fs.on_tick(self.fs_state, t, self.estimator.diverged,
+                                         self.estimator.health.diverged_reason)
+        if self.failsafe_active and not was_failsafe:
+            self.stats.failsafe_entries += 1
+            self._statustext(mavlink.MAV_SEVERITY_CRITICAL, f"FAILSAFE {self.fs_state.reason}"[:50])
+        if not self.armed:
+            self.demand = np.zeros(6)
+            return est, self._fs.safe_command(self.k)
+        if not self._was_enabled:  # joints start from the safe (neutral) command
+            self.controller.reset()
+            self.allocator.previous = None
+            if self.compensator is not None:
+                self.compensator.reset()
+        achieved = None
+        if self.allocation is not None and self._was_enabled:
+            achieved = self.allocation.wrench_achieved if self.prediction is None else (
+                np.asarray(self.allocation.wrench_achieved) + self.prediction.wrench_n)
+        self.demand = self.controller.step(est, self.setpoint, self.period_s, achieved=achieved).as_array()
+        if self.compensator is not None:
+            from .compensation import allocate_compensated
+
+            res = allocate_compensated(self.allocator, self.compensator, self.demand, nu_r=est.nu,
+                                       iterations=self.config.compensation_iterations)
+            alloc, self.prediction = res.allocation, res.prediction
+        else:
+            alloc = self.allocator.allocate(self.demand, nu_r=est.nu)
+        self.allocation = alloc
+        command = np.asarray(alloc.command, dtype=float)
+        self.stats.solve_time_s.append(alloc.solve_time_s)
+        if math.isfinite(alloc.weighted_error):
+            self.stats.weighted_error.append(float(alloc.weighted_error))
+        self.stats.fallbacks += int(bool(alloc.fallback))
+        self.stats.limit_violations += self._violations(command)
+        return est, command
 
     def _run_estimator(self) -> None:
         """Fuse the queued samples in time order, predicting between them with the held command."""
@@ -566,7 +598,7 @@ class OnboardLoop:
             self.link.send(mavlink.MAVLink_hil_actuator_controls_message(us, [float(c) for c in controls], mode, 0))
         servo = mavlink.MAVLink_servo_output_raw_message(us & 0xFFFFFFFF, 0, *(int(p) for p in pwm))
         self.link.send(servo)
-        if self.ground is not None:
+        if self.ground is not None and self.rates.due("SERVO_OUTPUT_RAW", t):
             self.ground.send(servo)
         self._last_answer_us = max(self._last_answer_us, us)
 
@@ -600,13 +632,14 @@ class OnboardLoop:
             ms = codec.time_boot_ms(max(t, 0.0))
             for name, value in est.health.as_dict().items():  # gating / NaN rejections per stream
                 out.send(mavlink.MAVLink_named_value_float_message(ms, name[:10].encode(), float(value)))
-        if t + 1e-9 < self._next_telemetry:
+        send = {n: self.rates.due(n, t) for n in TELEMETRY_STREAMS}  # rates: SET_MESSAGE_INTERVAL
+        if not any(send.values()):
             return
-        self._next_telemetry = t + 1.0 / self.config.telemetry_rate_hz
         ms = codec.time_boot_ms(max(t, 0.0))
         roll, pitch, yaw = est.euler_rad
         p, q, r = est.rates_rad_s
-        out.send(mavlink.MAVLink_attitude_message(ms, roll, pitch, yaw, p, q, r))
+        if send["ATTITUDE"]:
+            out.send(mavlink.MAVLink_attitude_message(ms, roll, pitch, yaw, p, q, r))
         a = self.allocation
         sp = self.setpoint
         st = self.stats
@@ -630,10 +663,12 @@ class OnboardLoop:
             "link_bad": float(self.link.bad_packets + self.link.unknown_packets),
         }
         for name, value in values.items():
-            out.send(mavlink.MAVLink_named_value_float_message(ms, name.encode(), float(value)))
+            if send["NAMED_VALUE_FLOAT"]:
+                out.send(mavlink.MAVLink_named_value_float_message(ms, name.encode(), float(value)))
         data = list(self.demand) + (list(a.wrench_achieved) if a is not None else [0.0] * 6)
         data = [float(x) if math.isfinite(x) else 0.0 for x in data] + [0.0] * (58 - len(data))
-        out.send(mavlink.MAVLink_debug_float_array_message(codec.time_usec(max(t, 0.0)), b"wrench", 1, data))
+        if send["DEBUG_FLOAT_ARRAY"]:
+            out.send(mavlink.MAVLink_debug_float_array_message(codec.time_usec(max(t, 0.0)), b"wrench", 1, data))
 
     def _sys_status(self, step_s: float):
         S = mavlink
