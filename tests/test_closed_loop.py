@@ -307,3 +307,34 @@ def test_demo_command_rejects_a_bad_vehicle_file(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "d"), "--vehicle", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "bad.toml" in err and "Traceback" not in err
+
+
+def test_a_collaborator_that_raises_gives_safe_output_not_a_dead_loop(loop_pair):
+    from onboard.loop import OnboardLoop, VehicleClock
+
+    class Broken:
+        calls = 0
+
+        def reset(self):
+            pass
+
+        def step(self, *a, **k):
+            Broken.calls += 1
+            raise RuntimeError("gains went missing")
+
+    _, ground = loop_pair
+    from onboard.link import Link
+
+    link = Link(f"udpout:127.0.0.1:{ground.local_address[1]}")
+    loop = OnboardLoop(V, link, VehicleClock(), controller=Broken())
+    for k in range(5):
+        t = 0.01 * k
+        loop.handle(mav.MAVLink_highres_imu_message(int(t * 1e6), 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 63, 0))
+        if k == 1:
+            loop.handle(arm_command(True))
+        loop.step(t)
+    link.close()
+    assert loop.armed and Broken.calls == 4 and loop.stats.step_errors == 4  # armed from the tick at 0.01 s
+    assert np.all(loop.command == 0.0)  # jets off, joints neutral
+    texts = [m.text for m in iter(lambda: ground.recv(0.3), None) if m.get_type() == "STATUSTEXT"]
+    assert any("gains went missing" in x for x in texts)
