@@ -1,0 +1,314 @@
+"""Candidate explanations of a residual: one per effect id and per misestimated parameter.
+
+A candidate is a small, pure description: which effect (an id of spec/vehicle-model.md section 4
+or one of added_mass, linear_damping, quadratic_damping, buoyancy, restoring_moment, imu_bias,
+sensor_delay, thruster_fault), whether it is `missing` or `misestimated`, the vehicle-file keys
+it fits, their start values and bounds, and `apply(theta)` giving the corrected model: a new
+`Vehicle` (via `with_values`), sensor corrections, and per-unit thrust fractions.
+
+`Evaluator` turns a corrected model into the residual channels along the recording (the
+generalised-force residual of replay.py plus the sensor-consistency channels) and caches the
+expensive pieces (reconstruction per sensor correction, actuator run per actuator parameters).
+`fit` fits a candidate's parameters on the training samples with scipy's least_squares and
+scores it on the held-out samples (chi-square improvement, fraction of the excess explained,
+BIC on the training part, per-axis signature).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from onboard import model
+from onboard.vehicle import Vehicle, VehicleFileError
+
+from . import replay
+
+CHANNELS = ("surge", "sway", "heave", "roll", "pitch", "yaw",
+            "gyro_x~attitude", "gyro_y~attitude", "gyro_z~attitude",
+            "accel_x~mocap", "accel_y~mocap", "accel_z~mocap")
+CHANNEL_AXIS = (0, 1, 2, 3, 4, 5, 3, 4, 5, 0, 1, 2)  # which body axis each channel speaks for
+
+
+@dataclass(frozen=True)
+class CorrectedModel:
+    vehicle: Vehicle
+    correction: replay.SensorCorrection = field(default_factory=replay.SensorCorrection)
+    thrust_fraction: tuple | None = None  # per unit, 1 = healthy
+
+
+@dataclass(frozen=True)
+class Candidate:
+    effect: str
+    kind: str  # "missing" or "misestimated"
+    keys: tuple  # (vehicle-file key, index or None) per parameter
+    x0: tuple
+    lower: tuple
+    upper: tuple
+    switch_on: tuple = ()  # effect ids to enable
+
+    @property
+    def n_params(self) -> int:
+        return len(self.x0)
+
+    def apply(self, theta, base: CorrectedModel) -> CorrectedModel:
+        theta = np.asarray(theta, float)
+        v = base.vehicle
+        if self.switch_on:
+            v = v.with_effects(**{e: True for e in self.switch_on})
+        values: dict = {}
+        corr = base.correction
+        frac = None if base.thrust_fraction is None else list(base.thrust_fraction)
+        for (key, idx), val in zip(self.keys, theta):
+            if key.startswith("thruster_fault."):
+                frac = frac or [1.0] * v.n_units
+                frac[idx] = float(val)
+            elif key == "sensors.gyro_bias":
+                g = list(corr.gyro_bias)
+                g[idx] = float(val)
+                corr = replace(corr, gyro_bias=tuple(g))
+            elif key == "sensors.accel_bias":
+                a = list(corr.accel_bias)
+                a[idx] = float(val)
+                corr = replace(corr, accel_bias=tuple(a))
+            elif key == "sensors.delay":
+                corr = replace(corr, delay_s=float(val))
+            elif idx is None:
+                values[key] = float(val)
+            else:
+                cur = values.get(key, list(v.get(key)))
+                cur[idx] = float(val)
+                values[key] = cur
+        if values:
+            v = v.with_values(values)
+        return CorrectedModel(v, corr, None if frac is None else tuple(frac))
+
+    def parameters(self, theta, base: Vehicle) -> dict:
+        """Fitted values keyed by vehicle-file key, in that key's shape (spec/recording.md 2)."""
+        out: dict = {}
+        for (key, idx), val in zip(self.keys, np.asarray(theta, float)):
+            if key.startswith("thruster_fault."):
+                out[f"thruster_fault.unit[{idx}].thrust_fraction"] = round(float(val), 4)
+                continue
+            if idx is None:
+                out[key] = float(f"{val:.5g}")
+            else:
+                cur = out.get(key)
+                if cur is None:
+                    cur = [0.0, 0.0, 0.0] if key.startswith("sensors.") else [float(c) for c in base.get(key)]
+                cur[idx] = float(f"{val:.5g}")
+                out[key] = cur
+        for e in self.switch_on:
+            out[f"effects.{e}.enabled"] = True
+        return out
+
+
+def _vec(effect, kind, key, values, lo_f, hi_f, floor=0.0, switch=()):
+    vals = [float(x) for x in values]
+    return Candidate(effect, kind, tuple((key, i) for i in range(len(vals))), tuple(vals),
+                     tuple(max(floor, x * lo_f) for x in vals),
+                     tuple(max(x * hi_f, floor + 1e-3 * (1 + abs(x))) for x in vals), switch)
+
+
+def candidates_for(v: Vehicle) -> list[Candidate]:
+    """One candidate per effect id (missing if off in `v`, misestimated if on and it has
+    parameters) and per misestimated physical parameter, IMU bias, sensor delay, thruster fault."""
+    k = v.n_units
+    out: list[Candidate] = []
+    on = v.effects.on
+    # --- effect ids (spec 4)
+    if not on("thrust_inflow"):
+        out.append(Candidate("thrust_inflow", "missing", (), (), (), (), ("thrust_inflow",)))
+    tm = v.thruster.motor_time_constant
+    out.append(Candidate("motor_lag", "misestimated" if on("motor_lag") else "missing",
+                         (("thruster.motor_time_constant", None),), (tm,), (0.005,), (1.0,),
+                         () if on("motor_lag") else ("motor_lag",)))
+    ts = v.servo.time_constant
+    out.append(Candidate("servo_lag", "misestimated" if on("servo_lag") else "missing",
+                         (("servo.time_constant", None),), (ts,), (0.002,), (0.5,),
+                         () if on("servo_lag") else ("servo_lag",)))
+    g = v.effects.azimuth_transient.gain_per_newton
+    out.append(Candidate("azimuth_transient", "misestimated" if on("azimuth_transient") else "missing",
+                         (("effects.azimuth_transient.gain_per_newton", None),), (g if g > 0 else 0.01,),
+                         (0.0,), (0.2,), () if on("azimuth_transient") else ("azimuth_transient",)))
+    if not on("surface_proximity"):
+        out.append(Candidate("surface_proximity", "missing", (), (), (), (), ("surface_proximity",)))
+    kw = v.effects.wall_proximity.k_wall
+    out.append(Candidate("wall_proximity", "misestimated" if on("wall_proximity") else "missing",
+                         (("effects.wall_proximity.k_wall", None),), (kw if kw > 0 else 0.3,),
+                         (0.0,), (10.0,), () if on("wall_proximity") else ("wall_proximity",)))
+    cur = v.environment.current if on("current") else (0.0, 0.0, 0.0)
+    out.append(Candidate("current", "misestimated" if on("current") else "missing",
+                         tuple(("environment.current", i) for i in range(3)), tuple(cur),
+                         (-1.0,) * 3, (1.0,) * 3, () if on("current") else ("current",)))
+    # --- misestimated physical parameters
+    out.append(_vec("added_mass", "misestimated", "hydro.added_mass", v.hydro.added_mass, 0.0, 4.0, 0.0))
+    out.append(_vec("linear_damping", "misestimated", "hydro.linear_damping", v.hydro.linear_damping, 0.0, 4.0, 0.0))
+    out.append(_vec("quadratic_damping", "misestimated", "hydro.quadratic_damping", v.hydro.quadratic_damping, 0.0, 4.0, 0.0))
+    vol = v.body.volume
+    out.append(Candidate("buoyancy", "misestimated", (("body.volume", None),), (vol,), (0.7 * vol,), (1.3 * vol,)))
+    out.append(Candidate("restoring_moment", "misestimated", tuple(("body.cb", i) for i in range(3)),
+                         tuple(v.body.cb), (-0.1,) * 3, (0.1,) * 3))
+    # --- sensors and actuators
+    s = v.sensors
+    out.append(Candidate("imu_bias", "missing",
+                         tuple(("sensors.gyro_bias", i) for i in range(3)) + tuple(("sensors.accel_bias", i) for i in range(3)),
+                         tuple(s.gyro_bias) + tuple(s.accel_bias), (-0.2,) * 3 + (-2.0,) * 3, (0.2,) * 3 + (2.0,) * 3))
+    out.append(Candidate("sensor_delay", "misestimated" if s.delay > 0 else "missing",
+                         (("sensors.delay", None),), (s.delay,), (0.0,), (0.5,)))
+    out.append(Candidate("thruster_fault", "missing", tuple((f"thruster_fault.unit{i}", i) for i in range(k)),
+                         (1.0,) * k, (0.05,) * k, (1.5,) * k))
+    return out
+
+
+def combine(a: Candidate, b: Candidate) -> Candidate:
+    """Two candidates fitted together (two effects at once)."""
+    return Candidate(f"{a.effect}+{b.effect}", a.kind, a.keys + b.keys, a.x0 + b.x0, a.lower + b.lower,
+                     a.upper + b.upper, tuple(dict.fromkeys(a.switch_on + b.switch_on)))
+
+
+# ------------------------------------------------------------------------------------------------
+# Evaluation
+
+
+ACT_KEYS = (model.ON_MOTOR, model.P_TAU_M, model.ON_SERVO, model.P_TAU_S, model.P_RLIM,
+            model.ON_TRANSIENT, model.P_ALIM, model.P_NMAX)
+
+
+class Evaluator:
+    """Residual channels (N, 12) of a corrected model along one recording, with caches.
+
+    Not pure in the strict sense (it caches), but deterministic: the same model gives the same
+    residual. Built ready to use from a recording and the nominal vehicle.
+    """
+
+    def __init__(self, rec, nominal: Vehicle):
+        self.rec = rec
+        self.nominal = nominal
+        self.k = nominal.n_units
+        self._traj: dict = {}
+        self._act: dict = {}
+        self.base = CorrectedModel(nominal)
+        self.traj0 = self.trajectory(self.base.correction)
+
+    def trajectory(self, corr: replay.SensorCorrection) -> replay.Trajectory:
+        key = (tuple(np.round(corr.gyro_bias, 9)), tuple(np.round(corr.accel_bias, 9)), round(corr.delay_s, 9))
+        if key not in self._traj:
+            if len(self._traj) > 64:
+                self._traj.clear()
+            self._traj[key] = replay.reconstruct(self.rec, self.nominal, corr)
+        return self._traj[key]
+
+    def command(self, traj, cm: CorrectedModel) -> np.ndarray:
+        if cm.thrust_fraction is None:
+            return traj.command
+        c = np.array(traj.command)
+        c[:, :self.k] *= np.sqrt(np.asarray(cm.thrust_fraction))
+        return c
+
+    def actuators(self, traj, p, cm: CorrectedModel) -> np.ndarray:
+        key = (id(traj), tuple(p[list(ACT_KEYS)]), cm.thrust_fraction)
+        if key not in self._act:
+            if len(self._act) > 64:
+                self._act.clear()
+            self._act[key] = replay.actuator_run(traj, p, self.k, command=self.command(traj, cm))
+        return self._act[key]
+
+    def residual(self, cm: CorrectedModel) -> np.ndarray:
+        traj = self.trajectory(cm.correction)
+        p = model.pack_params(cm.vehicle)
+        act = self.actuators(traj, p, cm)
+        acc = replay.model_acceleration(traj, act, p, command=self.command(traj, cm))
+        dyn = replay.acceleration_residual(traj, act, p, acc)
+        return np.column_stack([dyn, traj.kinematic])
+
+
+class SegmentedEvaluator:
+    """Several segments of one recording evaluated as one (residuals concatenated in order)."""
+
+    def __init__(self, evaluators: list):
+        self.evaluators = evaluators
+        self.base = evaluators[0].base
+        self.nominal = evaluators[0].nominal
+
+    def residual(self, cm: CorrectedModel) -> np.ndarray:
+        return np.concatenate([e.residual(cm) for e in self.evaluators])
+
+
+@dataclass(frozen=True)
+class Split:
+    """Decimated sample indices for fitting (train) and scoring (holdout), channel noise."""
+
+    train: np.ndarray
+    holdout: np.ndarray
+    sigma: np.ndarray  # (12,) noise floor per channel at the decimated samples
+    neff: np.ndarray  # (12,) independent samples per decimated sample (<= 1: they are correlated)
+    active: np.ndarray  # (12,) bool: channels the recording supports
+    holdout_fraction: float
+    block_s: float
+    holdout_mask: np.ndarray  # (N,) bool on the full grid
+
+
+@dataclass(frozen=True)
+class Fit:
+    candidate: Candidate
+    theta: np.ndarray
+    chi2_train: float
+    chi2_holdout: float
+    delta_holdout: float  # chi2 improvement on held-out samples (nominal - candidate)
+    explained: float  # fraction of the held-out excess over noise it removes
+    bic: float  # on training samples, relative to the nominal model
+    per_channel: np.ndarray  # held-out chi2 improvement per channel
+    residual: np.ndarray = field(repr=False)  # (N, 12) with the fitted correction
+    model: CorrectedModel = field(repr=False, default=None)
+
+
+def chi2(res: np.ndarray, split: Split, idx) -> tuple[float, np.ndarray]:
+    z = res[idx][:, split.active] / split.sigma[split.active]
+    per = np.zeros(len(split.active))
+    per[split.active] = (z ** 2).sum(axis=0) * split.neff[split.active]
+    return float(per.sum()), per
+
+
+def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: CorrectedModel | None = None,
+        max_iter: int = 3, x0=None) -> Fit:
+    """Fit `cand` on the training samples (least squares), score on the held-out samples."""
+    base = base or ev.base
+    w = np.sqrt(split.neff[split.active]) / split.sigma[split.active]
+    tr = split.train
+    theta0 = np.array(cand.x0 if x0 is None else x0, float)
+    lo, hi = np.array(cand.lower, float), np.array(cand.upper, float)
+    theta0 = np.clip(theta0, lo, hi)
+    scale = np.maximum(np.abs(theta0), (hi - lo) * 0.01)
+    prior_w = 0.3  # weak pull to the start: a parameter the data do not see stays put
+
+    def fun(th):
+        try:
+            cm = cand.apply(th, base)
+        except VehicleFileError:
+            return np.full(len(tr) * int(split.active.sum()) + len(th), 1e3)
+        r = ev.residual(cm)[tr][:, split.active] * w
+        return np.concatenate([r.ravel(), prior_w * (th - theta0) / scale])
+
+    if cand.n_params:
+        # trf with a forward-difference Jacobian: each iteration costs n + 1 residual
+        # evaluations; most candidates enter the residual (nearly) linearly, so a few suffice
+        sol = least_squares(fun, theta0, bounds=(lo, hi), x_scale=scale, diff_step=1e-3,
+                            max_nfev=max_iter, method="trf")
+        theta = sol.x
+    else:
+        theta = theta0
+    cm = cand.apply(theta, base)
+    res = ev.residual(cm)
+    c0_tr, _ = chi2(res0, split, tr)
+    c_tr, _ = chi2(res, split, tr)
+    c0_h, per0 = chi2(res0, split, split.holdout)
+    c_h, per = chi2(res, split, split.holdout)
+    n_h = len(split.holdout) * float(split.neff[split.active].sum())
+    n_tr = len(tr) * float(split.neff[split.active].sum())
+    excess = max(c0_h - n_h, 1e-9)
+    bic = n_tr * math.log(max(c_tr, 1e-12) / max(c0_tr, 1e-12)) + cand.n_params * math.log(max(n_tr, 2))
+    return Fit(cand, theta, c_tr, c_h, c0_h - c_h, (c0_h - c_h) / excess, bic, per0 - per, res, cm)

@@ -1,0 +1,73 @@
+"""`jetloop diagnose RECORDING [--vehicle V] [--json R.json] [--report DIR]` (spec/recording.md 2)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+
+def configure(parser) -> None:
+    parser.add_argument("recording", help=".tlog or dataflash .bin recording")
+    parser.add_argument("--vehicle", default=None,
+                        help="vehicle TOML: the nominal model (default: the reference vehicle asr4)")
+    parser.add_argument("--json", dest="json_path", default=None, help="write the JSON report here")
+    parser.add_argument("--report", dest="report_dir", default=None, help="write an HTML report with plots here")
+    parser.add_argument("--quiet", action="store_true", help="no progress on the console")
+
+
+def run(args) -> int:
+    from onboard.vehicle import VehicleFileError, load_vehicle
+
+    from ground.recording import RecordingError, read_recording
+
+    from . import diagnose
+    from .replay import ReplayError
+    from .report import write_html, write_json
+
+    t0 = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    try:
+        vehicle = load_vehicle(args.vehicle)
+        say(f"reading {args.recording}")
+        rec = read_recording(args.recording)
+        s = rec.skipped
+        say(f"{rec.duration_s:.1f} s, {sum(rec.messages.values())} messages; skipped {s.skipped_bytes} bytes "
+            f"({s.bad_crc_packets} bad-CRC packets, {s.truncated_bytes} truncated), "
+            f"non-monotonic {sum(s.non_monotonic.values())}, gaps {len(s.gaps)}")
+        diag = diagnose(rec, vehicle, progress=say)
+    except (VehicleFileError, RecordingError, ReplayError) as exc:
+        print(f"jetloop diagnose: {exc}", file=sys.stderr)
+        return 2
+    rep = diag.report
+    print(summary_text(rep))
+    try:
+        if args.json_path:
+            write_json(rep, args.json_path)
+            say(f"wrote {args.json_path}")
+        if args.report_dir:
+            path = write_html(diag, args.report_dir)
+            say(f"wrote {path}")
+    except OSError as exc:
+        print(f"jetloop diagnose: cannot write the report: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def summary_text(rep: dict) -> str:
+    lines = []
+    if not rep["findings"]:
+        lines.append("no finding: the nominal model explains the recording within its noise")
+    for i, f in enumerate(rep["findings"]):
+        lines.append(f"{i + 1}. {f['effect']} ({f['kind']}, confidence {f['confidence']:.2f}): {f['explanation']}")
+    h = rep["fit"]["holdout"]
+    lines.append(f"held-out NRMSE total: {h['before']['total']:.3f} -> {h['after']['total']:.3f}")
+    if rep["mismatch"]["windows"]:
+        lines.append(f"{len(rep['mismatch']['windows'])} window(s) above the noise floor, e.g. "
+                     + "; ".join(f"{w['t0']:.1f}-{w['t1']:.1f} s {'/'.join(w['axes'])}"
+                                 for w in rep["mismatch"]["windows"][:4]))
+    return "\n".join(lines)

@@ -1,0 +1,557 @@
+"""Replay a recording through a model: the measured motion, its generalised-force residual, and
+multiple-shooting windows re-initialised from the measurements.
+
+Pure math on arrays: a `Recording` and a parameter vector in, frozen results out.
+
+1. `reconstruct` puts every stream on one uniform grid (the IMU's) and estimates the full
+   rigid-body state from the measurements alone: attitude by a complementary filter (gyro
+   integrated, pulled toward ATTITUDE or the motion-capture quaternion with time constant
+   `ATT_TAU_S`), depth from pressure, linear velocity from the motion-capture position (a
+   Savitzky-Golay derivative) or, without motion capture, from the depth rate and the specific
+   force integrated through a leaky integrator (horizontal velocity is then only approximate).
+   Commands are the SERVO_OUTPUT_RAW PWM held from the sample on (spec 6).
+2. `actuator_run` integrates what the actuators do (propeller speeds, joint angles, the seed-004
+   transient filters) from the commands alone: it does not depend on the body's motion, so one
+   continuous run gives the actuator state at every instant without open-loop drift.
+3. `model_acceleration` evaluates the model's nu' at every reconstructed state, and
+   `force_residual` is what the measured motion needed minus what the model gives:
+       r = M_nom (nu'_measured - nu'_model(x_measured, u))   (Fossen 2011 eq. 6.1, rearranged)
+   with both sides passed through the same Savitzky-Golay smoother, so the smoothing's lag
+   at a command step cancels.
+4. `shoot` simulates short windows, each started from the reconstructed state (multiple
+   shooting), and returns the predicted sensor signals to compare with the recording.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+from scipy.signal import savgol_filter
+
+from onboard import model
+from onboard.vehicle import Vehicle
+
+ATT_TAU_S = 1.0  # complementary-filter time constant: gyro above ~0.16 Hz, attitude below
+SMOOTH_S = 0.21  # Savitzky-Golay window for rates and accelerations (order 2)
+MOCAP_SMOOTH_S = 0.31  # Savitzky-Golay window for velocity from motion-capture position
+LEAK_TAU_S = 8.0  # leaky integration of horizontal acceleration when there is no motion capture
+SIGNALS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z", "depth", "roll", "pitch", "yaw")
+AXES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
+
+
+class ReplayError(ValueError):
+    """A recording that lacks what replay needs; the message says which stream."""
+
+
+@dataclass(frozen=True)
+class SensorCorrection:
+    """Sensor-side terms of a candidate: biases and latency (spec 5)."""
+
+    gyro_bias: tuple = (0.0, 0.0, 0.0)  # rad/s
+    accel_bias: tuple = (0.0, 0.0, 0.0)  # m/s^2
+    delay_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """The recording on a uniform grid plus the state reconstructed from it."""
+
+    time_s: np.ndarray  # (N,)
+    dt_s: float
+    command: np.ndarray  # (N, 3k) held commands
+    pos_ned_m: np.ndarray  # (N, 3)
+    quat: np.ndarray  # (N, 4)
+    nu: np.ndarray  # (N, 6) smoothed
+    nu_dot: np.ndarray  # (N, 6) smoothed (measured: gyro derivative and specific force)
+    lin_acc: np.ndarray  # (N, 3) unsmoothed v' = f + R^T g e3 - w x v from the accelerometer
+    gyro: np.ndarray  # (N, 3) unsmoothed, bias-corrected body rates
+    kinematic: np.ndarray  # (N, 6) sensor consistency: gyro - attitude rate, accel - mocap acceleration
+    measured: dict  # signal name -> (N,) the raw sensor signals on the grid (SIGNALS)
+    has_mocap: bool
+    correction: SensorCorrection = field(default_factory=SensorCorrection)
+    noise_probe: np.ndarray | None = None  # (N, 10) white noise like each signal's, on the grid
+
+
+# ------------------------------------------------------------------------------------------------
+# Reconstruction
+
+
+def _interp(t_grid, t, y):
+    y = np.asarray(y, float)
+    if y.ndim == 1:
+        return np.interp(t_grid, t, y)
+    return np.column_stack([np.interp(t_grid, t, y[:, j]) for j in range(y.shape[1])])
+
+
+def _odd(n: int) -> int:
+    n = max(int(n), 5)
+    return n if n % 2 else n + 1
+
+
+def grid_for(rec) -> tuple[np.ndarray, float]:
+    """The uniform grid: IMU period, over the span where IMU, pressure and commands all exist."""
+    for name in ("imu", "pressure", "servo"):
+        s = getattr(rec, name)
+        if s is None or len(s.time_s) < 10:
+            raise ReplayError(
+                f"{rec.source}: the recording has no usable {name} stream "
+                f"({'HIGHRES_IMU or SCALED_IMU' if name == 'imu' else 'SCALED_PRESSURE2' if name == 'pressure' else 'SERVO_OUTPUT_RAW'} needed)")
+    dt = float(np.median(np.diff(rec.imu.time_s)))
+    t0 = max(rec.imu.time_s[0], rec.pressure.time_s[0], rec.servo.time_s[0])
+    t1 = min(rec.imu.time_s[-1], rec.pressure.time_s[-1])
+    if t1 - t0 < 20 * dt:
+        raise ReplayError(f"{rec.source}: IMU, pressure and commands overlap for only {t1 - t0:.2f} s")
+    n = int(np.floor((t1 - t0) / dt + 1e-9)) + 1
+    return t0 + dt * np.arange(n), dt
+
+
+def pwm_to_commands(vehicle: Vehicle, pwm_us: np.ndarray) -> np.ndarray:
+    """`onboard.pwm.pwm_to_command` for every row of an (N, 16) PWM array (the same linear maps)."""
+    pwm = np.asarray(pwm_us, float)
+    jlo, jhi = vehicle.pwm.jet_range
+    slo, shi = vehicle.pwm.servo_range
+    lim = vehicle.servo.angle_limit
+    jets = pwm[:, np.array(vehicle.pwm.jet_channels) - 1]
+    az = pwm[:, np.array(vehicle.pwm.azimuth_channels) - 1]
+    el = pwm[:, np.array(vehicle.pwm.elevation_channels) - 1]
+    n = np.clip((jets - jlo) / (jhi - jlo), 0.0, 1.0) * vehicle.thruster.n_max
+    a = np.clip((az - slo) / (shi - slo) * 2.0 - 1.0, -1.0, 1.0) * lim
+    b = np.clip((el - slo) / (shi - slo) * 2.0 - 1.0, -1.0, 1.0) * lim
+    return np.concatenate([n, a, b], axis=1)
+
+
+def held_commands(rec, vehicle: Vehicle, t_grid) -> np.ndarray:
+    """Command vector at each grid time: the last SERVO_OUTPUT_RAW at or before it (spec 6)."""
+    idx = np.searchsorted(rec.servo.time_s, t_grid + 1e-9, side="right") - 1
+    idx = np.clip(idx, 0, len(rec.servo.time_s) - 1)
+    return pwm_to_commands(vehicle, rec.servo.pwm_us)[idx]
+
+
+@njit(cache=True)
+def _complementary(gyro, q_meas, have_meas, dt, tau, q0):
+    """q' = 1/2 q (x) [0, w] integrated, plus a pull toward q_meas: w += (2/tau) vec(q^-1 q_meas)."""
+    n = gyro.shape[0]
+    out = np.empty((n, 4))
+    q = q0.copy()
+    for k in range(n):
+        out[k] = q
+        wx, wy, wz = gyro[k, 0], gyro[k, 1], gyro[k, 2]
+        if have_meas:
+            m = q_meas[k]
+            # e = q^-1 (x) m
+            w, a, b, c = q[0], -q[1], -q[2], -q[3]
+            ew = w * m[0] - a * m[1] - b * m[2] - c * m[3]
+            ex = w * m[1] + a * m[0] + b * m[3] - c * m[2]
+            ey = w * m[2] - a * m[3] + b * m[0] + c * m[1]
+            ez = w * m[3] + a * m[2] - b * m[1] + c * m[0]
+            s = 1.0 if ew >= 0 else -1.0
+            wx += 2.0 * s * ex / tau
+            wy += 2.0 * s * ey / tau
+            wz += 2.0 * s * ez / tau
+        # exact rotation over dt with constant body rate
+        ang = math.sqrt(wx * wx + wy * wy + wz * wz) * dt
+        if ang > 1e-12:
+            sa = math.sin(ang / 2) / (ang / dt)
+            dw, dx, dy, dz = math.cos(ang / 2), wx * sa, wy * sa, wz * sa
+        else:
+            dw, dx, dy, dz = 1.0, wx * dt / 2, wy * dt / 2, wz * dt / 2
+        w, a, b, c = q[0], q[1], q[2], q[3]
+        q = np.array([
+            w * dw - a * dx - b * dy - c * dz,
+            w * dx + a * dw + b * dz - c * dy,
+            w * dy - a * dz + b * dw + c * dx,
+            w * dz + a * dy - b * dx + c * dw,
+        ])
+        q /= math.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
+    return out
+
+
+def _euler_to_quat_rows(e):
+    r, p, y = e[:, 0] / 2, e[:, 1] / 2, e[:, 2] / 2
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.column_stack([
+        cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+    ])
+
+
+def _quat_to_euler_rows(q):
+    w, a, b, c = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    roll = np.arctan2(2 * (w * a + b * c), 1 - 2 * (a * a + b * b))
+    pitch = np.arcsin(np.clip(2 * (w * b - c * a), -1, 1))
+    yaw = np.arctan2(2 * (w * c + a * b), 1 - 2 * (b * b + c * c))
+    return np.column_stack([roll, pitch, yaw])
+
+
+def _continuous(q: np.ndarray) -> np.ndarray:
+    """Quaternion rows with signs chosen so consecutive rows agree (q and -q are one attitude)."""
+    flip = np.sum(q[1:] * q[:-1], axis=1) < 0
+    sign = np.concatenate([[1.0], np.where(np.cumsum(flip) % 2 == 1, -1.0, 1.0)])
+    return q * sign[:, None]
+
+
+def rotation_rows(q) -> np.ndarray:
+    """R(q) body->NED for every row (N, 3, 3) (Fossen 2011 eq. 2.72)."""
+    w, a, b, c = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    R = np.empty((len(q), 3, 3))
+    R[:, 0, 0] = 1 - 2 * (b * b + c * c)
+    R[:, 0, 1] = 2 * (a * b - w * c)
+    R[:, 0, 2] = 2 * (a * c + w * b)
+    R[:, 1, 0] = 2 * (a * b + w * c)
+    R[:, 1, 1] = 1 - 2 * (a * a + c * c)
+    R[:, 1, 2] = 2 * (b * c - w * a)
+    R[:, 2, 0] = 2 * (a * c - w * b)
+    R[:, 2, 1] = 2 * (b * c + w * a)
+    R[:, 2, 2] = 1 - 2 * (a * a + b * b)
+    return R
+
+
+def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = None) -> Trajectory:
+    """The recording on the IMU grid and the rigid-body state estimated from it (module doc 1)."""
+    corr = correction or SensorCorrection()
+    t, dt = grid_for(rec)
+    d = corr.delay_s  # a sample stamped t_m describes the vehicle at t_m - delay
+    env = vehicle.environment
+    imu_t = rec.imu.time_s - d
+    gyro_raw = _interp(t, rec.imu.time_s, rec.imu.gyro_frd_rad_s)
+    accel_raw = _interp(t, rec.imu.time_s, rec.imu.accel_frd_m_s2)
+    gyro = _interp(t, imu_t, rec.imu.gyro_frd_rad_s) - np.asarray(corr.gyro_bias)
+    accel = _interp(t, imu_t, rec.imu.accel_frd_m_s2) - np.asarray(corr.accel_bias)
+    depth_raw = (_interp(t, rec.pressure.time_s, rec.pressure.press_abs_pa) - env.p_atm) / (env.rho * env.g)
+    z = _interp(t, rec.pressure.time_s - d, rec.pressure.press_abs_pa)
+    z = env.surface_depth + (z - env.p_atm) / (env.rho * env.g)
+    w_s = _odd(round(SMOOTH_S / dt))
+    w_m = _odd(round(MOCAP_SMOOTH_S / dt))
+    # attitude
+    q_meas = None
+    euler_raw = np.zeros((len(t), 3))
+    if rec.attitude is not None and len(rec.attitude.time_s) > 2:
+        e = np.array(rec.attitude.euler_rad, float)
+        e[:, 2] = np.unwrap(e[:, 2])
+        euler_raw = _interp(t, rec.attitude.time_s, e)
+        q_meas = _euler_to_quat_rows(_interp(t, rec.attitude.time_s - d, e))
+    if rec.mocap is not None and len(rec.mocap.time_s) > 2:
+        # the pool's motion capture, when there is one, is the better attitude reference
+        # (and carries no vehicle sensor delay)
+        qm = _continuous(np.array(rec.mocap.quat_wxyz, float))
+        q_meas = _interp(t, rec.mocap.time_s, qm)
+        q_meas /= np.linalg.norm(q_meas, axis=1, keepdims=True)
+        if rec.attitude is None:
+            euler_raw = _quat_to_euler_rows(q_meas)
+            euler_raw[:, 2] = np.unwrap(euler_raw[:, 2])
+    if q_meas is not None:
+        q0 = q_meas[0]
+    else:  # level from the first second of specific force, yaw 0
+        f0 = accel[: max(1, int(1.0 / dt))].mean(axis=0)
+        roll0, pitch0 = math.atan2(-f0[1], -f0[2]), math.atan2(f0[0], math.hypot(f0[1], f0[2]))
+        q0 = _euler_to_quat_rows(np.array([[roll0, pitch0, 0.0]]))[0]
+        euler_raw = np.zeros((len(t), 3))
+    quat = _complementary(gyro, q_meas if q_meas is not None else np.zeros((1, 4)),
+                          q_meas is not None, dt, ATT_TAU_S, np.asarray(q0, float))
+    if q_meas is not None:
+        # two-sided: the same filter run backward in time (body rates negated), averaged with
+        # the forward pass, so the estimate has no lag and half the error variance
+        back = _complementary(np.ascontiguousarray(-gyro[::-1]), np.ascontiguousarray(q_meas[::-1]),
+                              True, dt, ATT_TAU_S, np.asarray(q_meas[-1], float))[::-1]
+        # the backward pass's sample k is the attitude at k + 1 propagated back one step: shift
+        back = np.vstack([back[1:], back[-1:]])
+        back *= np.where(np.sum(back * quat, axis=1, keepdims=True) < 0, -1.0, 1.0)
+        quat = quat + back
+        quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    R = rotation_rows(quat)
+    g_body = env.g * R[:, 2, :]  # R^T [0, 0, g]
+    # velocity
+    has_mocap = rec.mocap is not None and len(rec.mocap.time_s) > 10
+    kinematic = np.zeros((len(t), 6))
+    if q_meas is not None:
+        # w = 2 vec(q* (x) q') from the attitude measurement, against the gyro smoothed alike
+        qd = savgol_filter(q_meas, w_s, 2, deriv=1, delta=dt, axis=0, mode="interp")
+        qs = savgol_filter(q_meas, w_s, 2, axis=0, mode="interp")
+        w_att = 2.0 * np.column_stack([
+            qs[:, 0] * qd[:, 1] - qs[:, 1] * qd[:, 0] - qs[:, 2] * qd[:, 3] + qs[:, 3] * qd[:, 2],
+            qs[:, 0] * qd[:, 2] + qs[:, 1] * qd[:, 3] - qs[:, 2] * qd[:, 0] - qs[:, 3] * qd[:, 1],
+            qs[:, 0] * qd[:, 3] - qs[:, 1] * qd[:, 2] + qs[:, 2] * qd[:, 1] - qs[:, 3] * qd[:, 0],
+        ])
+        kinematic[:, :3] = savgol_filter(gyro, w_s, 2, axis=0, mode="interp") - w_att
+    if has_mocap:
+        # motion capture is the pool's, not the vehicle's: no sensor delay on it
+        pos = _interp(t, rec.mocap.time_s, rec.mocap.pos_ned_m)
+        v_ned = savgol_filter(pos, w_m, 2, deriv=1, delta=dt, axis=0, mode="interp")
+        a_ned = savgol_filter(pos, w_m, 2, deriv=2, delta=dt, axis=0, mode="interp")
+        f_ned = savgol_filter(np.einsum("nij,nj->ni", R, accel), w_m, 2, axis=0, mode="interp")
+        # specific force = R^T (a_ned - g e3): accel - mocap, in body axes
+        kinematic[:, 3:] = np.einsum("nji,nj->ni", R, f_ned - a_ned + np.array([0.0, 0.0, env.g]))
+    else:
+        pos = np.column_stack([np.zeros(len(t)), np.zeros(len(t)), z])
+        a_ned = np.einsum("nij,nj->ni", R, accel) + np.array([0.0, 0.0, env.g])
+        v_ned = np.zeros((len(t), 3))
+        v_ned[:, :2] = _leaky(a_ned[:, :2], dt, LEAK_TAU_S)
+        v_ned[:, 2] = savgol_filter(z, w_m, 2, deriv=1, delta=dt, mode="interp")
+        pos[:, 2] = z
+    v_body = np.einsum("nji,nj->ni", R, v_ned)
+    omega = savgol_filter(gyro, w_s, 2, axis=0, mode="interp")
+    omega_dot = savgol_filter(gyro, w_s, 2, deriv=1, delta=dt, axis=0, mode="interp")
+    # v' = f + R^T g e3 - w x v (spec 5 inverted)
+    lin_acc = accel + g_body - np.cross(gyro, v_body)
+    v_dot = savgol_filter(lin_acc, w_s, 2, axis=0, mode="interp")
+    nu = np.column_stack([v_body, omega])
+    nu_dot = np.column_stack([v_dot, omega_dot])
+    if not has_mocap:
+        pos[:, 2] = savgol_filter(z, w_s, 2, mode="interp")
+    command = held_commands(rec, vehicle, t)
+    # a white-noise probe per signal: noise of the level estimated from the native samples,
+    # drawn at the native sample times and put on the grid the same way as the signal
+    rng = np.random.default_rng(7)
+
+    def probe(t_native, y_native):
+        y = np.asarray(y_native, float)
+        y = y[:, None] if y.ndim == 1 else y
+        d2 = y[2:] - 2 * y[1:-1] + y[:-2]
+        sd = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / math.sqrt(6.0)
+        return _interp(t, t_native, rng.normal(size=y.shape) * sd)
+
+    pg, pa = probe(rec.imu.time_s, rec.imu.gyro_frd_rad_s), probe(rec.imu.time_s, rec.imu.accel_frd_m_s2)
+    pp = probe(rec.pressure.time_s, rec.pressure.press_abs_pa)[:, 0] / (env.rho * env.g)
+    if rec.attitude is not None and len(rec.attitude.time_s) > 2:
+        e = np.array(rec.attitude.euler_rad, float)
+        e[:, 2] = np.unwrap(e[:, 2])
+        pe = probe(rec.attitude.time_s, e)
+    else:
+        pe = np.zeros((len(t), 3))
+    noise_probe = np.column_stack([pg, pa, pp, pe])
+    noise_probe.setflags(write=False)
+    measured = {
+        "gyro_x": gyro_raw[:, 0], "gyro_y": gyro_raw[:, 1], "gyro_z": gyro_raw[:, 2],
+        "accel_x": accel_raw[:, 0], "accel_y": accel_raw[:, 1], "accel_z": accel_raw[:, 2],
+        "depth": depth_raw, "roll": euler_raw[:, 0], "pitch": euler_raw[:, 1], "yaw": euler_raw[:, 2],
+    }
+    for a in (t, command, pos, quat, nu, nu_dot, lin_acc, gyro, kinematic, *measured.values()):
+        a.setflags(write=False)
+    return Trajectory(t, dt, command, pos, quat, nu, nu_dot, lin_acc, gyro, kinematic, measured,
+                      has_mocap, corr, noise_probe)
+
+
+@njit(cache=True)
+def _leaky_kernel(a, dt, tau):
+    out = np.zeros_like(a)
+    v = np.zeros(a.shape[1])
+    k = math.exp(-dt / tau)
+    for i in range(a.shape[0]):
+        out[i] = v
+        v = k * v + dt * a[i]
+    return out
+
+
+def _leaky(a, dt, tau):
+    return _leaky_kernel(np.ascontiguousarray(a), dt, tau)
+
+
+# ------------------------------------------------------------------------------------------------
+# Actuators and the model's acceleration along the reconstructed trajectory
+
+
+@njit(cache=True)
+def _act_derivative(xa, u, p, k, out):
+    """Actuator part of spec 4 (motor_lag, servo_lag, azimuth_transient filters) for k units."""
+    lim, nmax = p[model.P_ALIM], p[model.P_NMAX]
+    tf_on = p[model.ON_TRANSIENT] > 0.5
+    for i in range(k):
+        n_cmd = min(max(u[i], 0.0), nmax)
+        if p[model.ON_MOTOR] > 0.5:
+            out[i] = (n_cmd - min(max(xa[i], 0.0), nmax)) / p[model.P_TAU_M]
+        else:
+            out[i] = 0.0
+        if p[model.ON_SERVO] > 0.5:
+            ad = model.servo_rate(xa[k + i], u[k + i], lim, p[model.P_RLIM], p[model.P_TAU_S])
+            bd = model.servo_rate(xa[2 * k + i], u[2 * k + i], lim, p[model.P_RLIM], p[model.P_TAU_S])
+        else:
+            ad, bd = 0.0, 0.0
+        out[k + i], out[2 * k + i] = ad, bd
+        j = 3 * k + model.N_TF_STATES * i
+        if tf_on:
+            drives = (abs(ad), ad, ad, abs(bd), bd)
+            for r in range(5):
+                coef = p[model.P_TF + 8 * r:model.P_TF + 8 * r + 8]
+                model.filter_derivative(xa[j + 4 * r:j + 4 * r + 4], drives[r], coef, out[j + 4 * r:j + 4 * r + 4])
+        else:
+            for r in range(model.N_TF_STATES):
+                out[j + r] = 0.0
+
+
+@njit(cache=True)
+def _act_project(xa, u, p, k):
+    lim = p[model.P_ALIM]
+    for i in range(k):
+        if p[model.ON_MOTOR] < 0.5:
+            xa[i] = min(max(u[i], 0.0), p[model.P_NMAX])
+        for j in (k + i, 2 * k + i):
+            if p[model.ON_SERVO] < 0.5:
+                xa[j] = min(max(u[j], -lim), lim)
+            else:
+                xa[j] = min(max(xa[j], -lim), lim)
+
+
+@njit(cache=True)
+def _actuator_run(command, p, dt, substeps, xa0):
+    n, k = command.shape[0], command.shape[1] // 3
+    m = xa0.shape[0]
+    out = np.empty((n, m))
+    xa = xa0.copy()
+    h = dt / substeps
+    k1, k2, k3, k4 = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    for s in range(n):
+        u = command[s]
+        if s == 0:
+            _act_project(xa, u, p, k)
+        out[s] = xa
+        for _ in range(substeps):
+            _act_derivative(xa, u, p, k, k1)
+            _act_derivative(xa + 0.5 * h * k1, u, p, k, k2)
+            _act_derivative(xa + 0.5 * h * k2, u, p, k, k3)
+            _act_derivative(xa + h * k3, u, p, k, k4)
+            xa = xa + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+            _act_project(xa, u, p, k)
+    return out
+
+
+def actuator_run(traj: Trajectory, p: np.ndarray, n_units: int, substeps: int = 2, command=None) -> np.ndarray:
+    """(N, 3k + 20k) actuator and transient-filter states along the grid (module doc 2).
+
+    Initial state as spec 6: propellers at rest, joints at the first command, filters zero.
+    """
+    k = n_units
+    xa0 = np.zeros(3 * k + model.N_TF_STATES * k)
+    command = traj.command if command is None else command
+    xa0[k:3 * k] = command[0, k:3 * k]
+    return _actuator_run(np.ascontiguousarray(command), p, traj.dt_s, substeps, xa0)
+
+
+@njit(cache=True)
+def _model_acc(pos, quat, nu, act, command, p, idx):
+    m = idx.shape[0]
+    k = command.shape[1] // 3
+    nx = 13 + act.shape[1]
+    out = np.empty((m, 6))
+    x = np.zeros(nx)
+    xdot = np.zeros(nx)
+    for j in range(m):
+        i = idx[j]
+        x[0:3] = pos[i]
+        x[3:7] = quat[i]
+        x[7:13] = nu[i]
+        x[13:] = act[i]
+        model.derivative(x, command[i], p, xdot)
+        out[j] = xdot[7:13]
+    return out
+
+
+def model_acceleration(traj: Trajectory, act: np.ndarray, p: np.ndarray, idx=None, command=None) -> np.ndarray:
+    """nu'_model(x_measured, u) at grid indices `idx` (all by default), (m, 6)."""
+    idx = np.arange(len(traj.time_s)) if idx is None else np.asarray(idx, np.int64)
+    command = traj.command if command is None else np.ascontiguousarray(command)
+    return _model_acc(traj.pos_ned_m, traj.quat, traj.nu, act, command, p, idx)
+
+
+def smooth(traj: Trajectory, y: np.ndarray) -> np.ndarray:
+    """The Savitzky-Golay smoother the reconstruction used, applied to a model signal."""
+    return savgol_filter(y, _odd(round(SMOOTH_S / traj.dt_s)), 2, axis=0, mode="interp")
+
+
+def nominal_mass_diag(vehicle: Vehicle) -> np.ndarray:
+    """diag(M_RB + M_A) at depth, away from walls: converts acceleration residuals to N, N m."""
+    b = vehicle.body
+    return np.array([b.mass] * 3 + list(b.inertia)) + np.asarray(vehicle.hydro.added_mass)
+
+
+def acceleration_residual(traj: Trajectory, act: np.ndarray, p: np.ndarray, acc=None) -> np.ndarray:
+    """nu'_measured - nu'_model (N, 6), both through the same linear filter (module doc 3).
+
+    Linear axes: S(v'_accel - v'_model), S the Savitzky-Golay smoother. Angular axes:
+    D(w_gyro - integral of w'_model), D the Savitzky-Golay derivative: the gyro is
+    differentiated and the model integrated (trapezoid), so the same D acts on both and the
+    filter's response to fast yaw transients cancels exactly.
+    """
+    acc = model_acceleration(traj, act, p) if acc is None else acc
+    out = np.empty_like(acc)
+    win = _odd(round(SMOOTH_S / traj.dt_s))
+    out[:, :3] = savgol_filter(traj.lin_acc - acc[:, :3], win, 2, axis=0, mode="interp")
+    dt = traj.dt_s
+    integral = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * dt * (acc[1:, 3:] + acc[:-1, 3:]), axis=0)])
+    out[:, 3:] = savgol_filter(traj.gyro - integral, win, 2, deriv=1, delta=dt, axis=0, mode="interp")
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Multiple shooting
+
+
+@njit(cache=True)
+def _shoot(pos, quat, nu, act, command, p, starts, length, substeps, dt, out):
+    """For each window start s: x(t_s) from the reconstruction, RK4 forward `length` grid steps.
+
+    out[w, j] = [gyro(3), specific force(3), z, roll, pitch, yaw] at grid index s + j.
+    """
+    nx = 13 + act.shape[1]
+    h = dt / substeps
+    xdot = np.zeros(nx)
+    for w in range(starts.shape[0]):
+        s = starts[w]
+        x = np.zeros(nx)
+        x[0:3] = pos[s]
+        x[3:7] = quat[s]
+        x[7:13] = nu[s]
+        x[13:] = act[s]
+        for j in range(length):
+            u = command[s + j]
+            model.derivative(x, u, p, xdot)
+            f = model.specific_force(x, xdot, p)
+            r, pi, y = model.quat_to_euler(x[3:7])
+            out[w, j, 0:3] = x[10:13]
+            out[w, j, 3:6] = f
+            out[w, j, 6] = x[2]
+            out[w, j, 7] = r
+            out[w, j, 8] = pi
+            out[w, j, 9] = y
+            if j + 1 < length:
+                for _ in range(substeps):
+                    x = model.rk4_step(x, u, p, h)
+
+
+def shoot(traj: Trajectory, act: np.ndarray, p: np.ndarray, starts, length: int, substeps: int = 1,
+          command=None) -> np.ndarray:
+    """Predicted signals (W, length, 10) of windows re-initialised from the measurements."""
+    starts = np.asarray(starts, np.int64)
+    out = np.zeros((len(starts), length, len(SIGNALS)))
+    command = traj.command if command is None else np.ascontiguousarray(command)
+    _shoot(traj.pos_ned_m, traj.quat, traj.nu, act, command, p, starts, length, substeps,
+           traj.dt_s, out)
+    return out
+
+
+def predicted_vs_measured(traj: Trajectory, pred: np.ndarray, starts, length: int, vehicle: Vehicle,
+                          correction: SensorCorrection | None = None):
+    """(pred, meas) arrays (W, length, 10) in sensor terms: biases added, delay applied.
+
+    The predicted state at grid time t is what the sensors report at t + delay, so the
+    measurement is read at t + delay; yaw is compared as a change since the window start.
+    """
+    corr = correction or SensorCorrection()
+    t = traj.time_s
+    pred = pred.copy()
+    pred[:, :, 0:3] += np.asarray(corr.gyro_bias)
+    pred[:, :, 3:6] += np.asarray(corr.accel_bias)
+    pred[:, :, 6] = pred[:, :, 6] - vehicle.environment.surface_depth
+    pred[:, :, 6] = np.maximum(pred[:, :, 6], 0.0)
+    idx = np.asarray(starts)[:, None] + np.arange(length)[None, :]
+    meas = np.empty_like(pred)
+    for j, name in enumerate(SIGNALS):
+        y = traj.measured[name]
+        meas[:, :, j] = np.interp(t[idx] + corr.delay_s, t, y) if corr.delay_s else y[idx]
+    # yaw: change over the window (the heading reference is arbitrary); unwrap the prediction
+    pred[:, :, 9] = np.unwrap(pred[:, :, 9], axis=1)
+    pred[:, :, 9] -= pred[:, :1, 9]
+    meas[:, :, 9] -= meas[:, :1, 9]
+    return pred, meas

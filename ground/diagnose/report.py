@@ -1,0 +1,142 @@
+"""The diagnosis written out: JSON exactly per spec/recording.md section 2, and an HTML report.
+
+The HTML report (`--report DIR`) holds: the findings in words with their parameters as a
+vehicle-file fragment to paste back; measured vs nominal vs corrected signals over held-out
+shooting windows; the residual over time per axis with the flagged windows shaded; each
+finding's evidence (the residual it explains against what it predicts).
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+
+from onboard.vehicle import fragment_toml
+
+from . import replay
+from .candidates import CHANNELS
+
+
+def write_json(report: dict, path) -> None:
+    Path(path).write_text(json.dumps(report, indent=2, allow_nan=False, default=_jsonable) + "\n")
+
+
+def _jsonable(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_html(diag, out_dir) -> Path:
+    """index.html plus PNG figures in `out_dir`; returns the HTML path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rep = diag.report
+    traj = diag.traj
+    t = traj.time_s
+    figs = []
+
+    # 1. residual over time with flagged windows
+    fig, axs = plt.subplots(6, 1, figsize=(11, 10), sharex=True)
+    M = diag.mass_diag
+    r0 = replay.smooth(traj, diag.residual0[:, :6]) * M
+    r1 = replay.smooth(traj, diag.residual1[:, :6]) * M
+    for i, ax in enumerate(axs):
+        ax.plot(t, r0[:, i], lw=0.6, color="tab:red", label="nominal")
+        ax.plot(t, r1[:, i], lw=0.6, color="tab:green", label="with findings")
+        for w in diag.windows:
+            ax.axvspan(w["t0"], w["t1"], color="orange", alpha=0.25 if replay.AXES[i] in w["axes"] else 0.08)
+        ax.set_ylabel(f"{replay.AXES[i]}\n[{'N' if i < 3 else 'N m'}]")
+    axs[0].legend(loc="upper right", fontsize=8)
+    axs[-1].set_xlabel("vehicle time [s]")
+    fig.suptitle("generalised-force residual (measured motion minus model), flagged windows shaded")
+    figs.append(_save(fig, out / "residual.png", plt))
+
+    # 2. measured vs nominal vs corrected over the held-out shooting windows
+    shots = diag.shots
+    if len(shots["starts"]):
+        n = shots["length"]
+        idx = (np.asarray(shots["starts"])[:, None] + np.arange(n)[None, :])
+        fig, axs = plt.subplots(5, 2, figsize=(12, 11), sharex=True)
+        for j, name in enumerate(replay.SIGNALS):
+            ax = axs[j % 5, j // 5]
+            for w in range(len(shots["starts"])):
+                tt = t[idx[w]]
+                ax.plot(tt, shots["meas"][w, :, j], color="0.6", lw=0.5, label="measured" if w == 0 else None)
+                ax.plot(tt, shots["before"][w, :, j], color="tab:red", lw=0.8, label="nominal" if w == 0 else None)
+                ax.plot(tt, shots["after"][w, :, j], color="tab:green", lw=0.8, label="corrected" if w == 0 else None)
+            ax.set_ylabel(name, fontsize=8)
+        axs[0, 0].legend(fontsize=8)
+        fig.suptitle("held-out multiple-shooting windows: measured, nominal and corrected")
+        figs.append(_save(fig, out / "signals.png", plt))
+
+    # 3. evidence per finding: what it explains vs the residual
+    for k, f in enumerate(rep["findings"]):
+        fit = next((g for g in diag.fits if g.candidate.effect == f["effect"]), None)
+        if fit is None:
+            continue
+        fig, axs = plt.subplots(2, 1, figsize=(11, 5), sharex=True)
+        per = np.maximum(fit.per_channel, 0)
+        ch = int(np.argmax(per))
+        scale = M[ch] if ch < 6 else 1.0
+        res0 = replay.smooth(traj, diag.residual0[:, ch:ch + 1])[:, 0] * scale
+        explained = res0 - replay.smooth(traj, fit.residual[:, ch:ch + 1])[:, 0] * scale if len(fit.residual) == len(t) else None
+        axs[0].plot(t, res0, lw=0.6, color="tab:red", label=f"residual ({CHANNELS[ch]})")
+        if explained is not None:
+            axs[0].plot(t, explained, lw=0.8, color="tab:blue", label=f"what {f['effect']} predicts")
+        axs[0].legend(fontsize=8)
+        if explained is not None:
+            axs[1].plot(t, res0 - explained, lw=0.6, color="tab:green", label="left over")
+            axs[1].legend(fontsize=8)
+        axs[1].set_xlabel("vehicle time [s]")
+        fig.suptitle(f"finding {k + 1}: {f['effect']} ({f['kind']})")
+        figs.append(_save(fig, out / f"finding_{k + 1}.png", plt))
+
+    rows = "".join(
+        f"<tr><td>{i + 1}</td><td><b>{html.escape(f['effect'])}</b></td><td>{f['kind']}</td>"
+        f"<td>{f['confidence']:.2f}</td><td>{html.escape(f['explanation'])}</td></tr>"
+        for i, f in enumerate(rep["findings"]))
+    frag = {}
+    for f in rep["findings"]:
+        frag.update({k: v for k, v in f["parameters"].items() if not k.startswith("thruster_fault.")})
+    hold = rep["fit"]["holdout"]
+    sig_rows = "".join(
+        f"<tr><td>{s}</td><td>{hold['before'].get(s, float('nan')):.3f}</td><td>{hold['after'].get(s, float('nan')):.3f}</td></tr>"
+        for s in ["total", *replay.SIGNALS])
+    win_rows = "".join(
+        f"<tr><td>{w['t0']:.1f}-{w['t1']:.1f}</td><td>{', '.join(w['axes'])}</td><td>{w['score']:.1f}</td>"
+        f"<td>{', '.join(w.get('regimes', []))}</td></tr>" for w in rep["mismatch"]["windows"])
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>jetloop diagnosis</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}} td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style></head><body>
+<h1>Diagnosis of {html.escape(rep['recording'].get('source', ''))}</h1>
+<p>{rep['recording']['duration_s']:.1f} s; skipped bytes {rep['recording']['skipped_bytes']},
+bad-CRC packets {rep['recording'].get('bad_crc_packets', 0)}.</p>
+<h2>Findings</h2>
+{'<table><tr><th>#</th><th>effect</th><th>kind</th><th>confidence</th><th>evidence</th></tr>' + rows + '</table>' if rows else '<p>No finding: the nominal model explains the recording within its noise.</p>'}
+{'<h3>Vehicle-file fragment</h3><pre>' + html.escape(fragment_toml(frag)) + '</pre>' if frag else ''}
+<h2>Held-out NRMSE</h2><table><tr><th>signal</th><th>before</th><th>after</th></tr>{sig_rows}</table>
+<p>{html.escape(rep['fit']['method'])}</p>
+<h2>Windows above the noise floor</h2>
+{'<table><tr><th>time [s]</th><th>axes</th><th>score</th><th>regimes</th></tr>' + win_rows + '</table>' if win_rows else '<p>none</p>'}
+{''.join(f'<p><img src="{p.name}" width="100%"></p>' for p in figs)}
+</body></html>"""
+    path = out / "index.html"
+    path.write_text(page)
+    return path
+
+
+def _save(fig, path: Path, plt) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

@@ -1,0 +1,450 @@
+"""`jetloop prove`: the diagnosis proven on recordings where one effect is concealed.
+
+Each case makes a recording with the plant (`hil.plant.Plant`) from a TRUE vehicle in which one
+effect is present, and hands `diagnose` a NOMINAL vehicle file in which that effect is absent or
+wrong. The excitation is a scripted pool session flown by a simple pilot (depth and heading
+PD loops on the plant's true state, scripted surge and sway forces, allocation to the four
+vectored jets; the commands reach the plant as integer PWM and are recorded as such): dives,
+runs, turns, sway runs, heave work near the floor, a surfacing. The effects are concealed:
+small enough that their imprint on the raw signals is a few times the sensor noise, or acting
+in only part of the run (the floor, the surface), or with a second effect masking them.
+Control cases have nothing missing. Every case is checked (named first, windows overlap the
+effect, parameter within 15 %, held-out NRMSE down >= 40 %, controls give no finding) and the
+table is printed and written to prove.json. Nothing is tuned per case: the recordings come
+from the plant, the verdicts from `diagnose`; failures stay in the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hil.plant import Plant
+from onboard import model
+from onboard.pwm import command_to_pwm, pwm_to_command
+from onboard.vehicle import Vehicle, load_vehicle
+
+CONTROL_HZ = 50.0
+MOCAP_HZ = 50.0
+MOCAP_NOISE_M = 0.001
+MOCAP_NOISE_RAD = 0.002
+
+
+# ------------------------------------------------------------------------------------------------
+# The pool session: setpoints and a pilot
+
+
+def session_setpoints(duration_s: float, seed: int):
+    """Piecewise setpoints (t0, depth_m, yaw_rad, surge_N, sway_N) of a scripted pool session.
+
+    Phases scale with `duration_s` (reference 120 s): hold, dive toward the floor, runs forward
+    and back with turns, sway runs, heave work near the floor, depth sweeps, a surfacing and a
+    dive back. A seeded jitter varies magnitudes and times so sessions are not identical.
+    """
+    rng = np.random.default_rng(seed)
+    s = duration_s / 120.0
+    j = lambda a: a * (1.0 + 0.15 * rng.uniform(-1, 1))  # noqa: E731
+    plan = [
+        (0, 0.50, 0.0, 0.0, 0.0),
+        (6, 0.95, 0.0, 0.0, 0.0),  # dive toward the floor (1.2 m)
+        (14, 0.70, 0.0, j(1.6), 0.0),  # run forward
+        (22, 0.70, math.pi / 2, j(0.8), 0.0),  # turn while running
+        (30, 0.60, math.pi / 2, j(-1.4), 0.0),  # run back
+        (37, 0.60, -math.pi / 4, 0.0, 0.0),  # turn
+        (44, 0.55, -math.pi / 4, 0.0, j(1.3)),  # sway run
+        (51, 0.55, 0.3, 0.0, j(-1.3)),  # sway back while turning
+        (58, 1.00, 0.3, 0.0, 0.0),  # down to the floor
+        (63, 0.90, 0.3, j(0.6), 0.0),  # heave work near the floor
+        (66, 1.02, 0.3, 0.0, 0.0),
+        (69, 0.92, -0.6, 0.0, 0.0),
+        (72, 1.03, -0.6, j(-0.6), 0.0),
+        (76, 0.40, -0.6, 0.0, 0.0),  # depth sweeps
+        (81, 0.85, 1.2, j(1.0), 0.0),
+        (87, 0.35, 1.2, 0.0, j(-0.8)),
+        (93, 0.75, 0.0, j(1.8), 0.0),  # fast run
+        (100, -0.10, 0.0, 0.0, 0.0),  # surfacing
+        (110, 0.45, 0.4, j(0.8), 0.0),  # dive back
+    ]
+    return [(t0 * s, d, y, fx, fy) for t0, d, y, fx, fy in plan]
+
+
+@dataclass(frozen=True)
+class Pilot:
+    """Depth and heading PD loops plus scripted horizontal force, allocated to k vectored jets.
+
+    Each unit gets a baseline outward force (squeeze) plus its share of the wanted body wrench
+    from the pseudo-inverse of the force map (spec 3), so every direction stays reachable with
+    jets that only push outward; the unit's force vector gives its n, azimuth and elevation.
+    """
+
+    vehicle: Vehicle
+    squeeze_n: float = 0.6
+    kp_depth: float = 12.0
+    kd_depth: float = 10.0
+    kp_yaw: float = 0.35
+    kd_yaw: float = 0.25
+
+    def command(self, x: np.ndarray, sp) -> np.ndarray:
+        v = self.vehicle
+        k = v.n_units
+        _, depth_ref, yaw_ref, fx_w, fy_b = sp
+        R = model.rotation(x[3:7])
+        roll, pitch, yaw = model.quat_to_euler(x[3:7])
+        z = x[2] - v.environment.surface_depth
+        w_ned = (R @ x[7:10])[2]
+        e = v.environment
+        trim = (e.rho * v.body.volume - v.body.mass) * e.g  # net buoyancy to cancel (N, up)
+        fz_ned = self.kp_depth * (depth_ref - z) - self.kd_depth * w_ned + trim
+        fz_ned = float(np.clip(fz_ned, -3.0, 4.0))
+        e_yaw = (yaw_ref - yaw + math.pi) % (2 * math.pi) - math.pi
+        mz = float(np.clip(self.kp_yaw * e_yaw - self.kd_yaw * x[12], -0.25, 0.25))
+        f_body = R.T @ np.array([0.0, 0.0, fz_ned]) + np.array([fx_w, fy_b, 0.0])
+        wrench = np.array([f_body[0], f_body[1], f_body[2], 0.0, 0.0, mz])
+        B = model.wrench_map(v)
+        rows = [0, 1, 2, 5]
+        share = np.linalg.pinv(B[rows]) @ wrench[rows]
+        cmd = np.zeros(3 * k)
+        lim = v.servo.angle_limit
+        thrust_coef = v.environment.rho * v.thruster.diameter ** 4 * v.thruster.kt[0]
+        for i, u in enumerate(v.units):
+            e1 = np.array(u.neutral)
+            e2 = np.array([-e1[1], e1[0], 0.0])
+            f = self.squeeze_n * e1 + share[3 * i:3 * i + 3]
+            T = float(np.linalg.norm(f))
+            alpha = math.atan2(f @ e2, f @ e1)
+            beta = -math.asin(max(-1.0, min(1.0, f[2] / max(T, 1e-9))))
+            cmd[i] = min(math.sqrt(T / thrust_coef), v.thruster.n_max)
+            cmd[k + i] = float(np.clip(alpha, -lim, lim))
+            cmd[2 * k + i] = float(np.clip(beta, -lim, lim))
+        return cmd
+
+
+# ------------------------------------------------------------------------------------------------
+# Making a recording
+
+
+@dataclass(frozen=True)
+class SessionTruth:
+    """What the plant did: for checking a diagnosis against the truth."""
+
+    time_s: np.ndarray
+    depth_m: np.ndarray
+    speed_m_s: np.ndarray
+
+
+def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 0,
+                   thrust_fraction=None, mocap: bool = True, noise: bool = True,
+                   rig_stiffness=None) -> SessionTruth:
+    """Fly the pool session on the plant with the TRUE vehicle and write a .tlog at `path`.
+
+    `thrust_fraction` (per unit, 1 = healthy) models a degraded thruster: the unit's propeller
+    reaches sqrt(fraction) of its commanded speed, so its thrust is `fraction` of nominal
+    (T ~ n^2, seed 000 eq. 15). The recorded PWM is what the pilot commanded.
+    """
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    k = truth.n_units
+    plant = Plant(truth, seed=seed, depth_m=0.5, noise=noise, rig_stiffness=rig_stiffness,
+                  rig_anchor=None if rig_stiffness is None else (0.0, 0.0, 0.6))
+    pilot = Pilot(truth)
+    sps = session_setpoints(duration_s, seed)
+    link = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    rng = np.random.default_rng(seed + 1000)
+    scale = np.ones(3 * k)
+    if thrust_fraction is not None:
+        scale[:k] = np.sqrt(np.asarray(thrust_fraction, float))
+    out = []  # (time_s, order, packet)
+    t_ctrl = 1.0 / CONTROL_HZ
+    n_ctrl = int(round(duration_s * CONTROL_HZ))
+    times, depths, speeds = [], [], []
+    for step in range(n_ctrl):
+        t = step * t_ctrl
+        sp = next(s for s in reversed(sps) if s[0] <= t + 1e-9)
+        pwm = command_to_pwm(truth, pilot.command(plant.state, sp))
+        plant.set_command(pwm_to_command(truth, pwm) * scale)
+        us = int(round(t * 1e6))
+        out.append((t, 0, mav.MAVLink_servo_output_raw_message(
+            us & 0xFFFFFFFF, 0, *[int(c) for c in pwm]).pack(link)))
+        if step % int(CONTROL_HZ) == 0:
+            out.append((t, -1, mav.MAVLink_heartbeat_message(
+                mav.MAV_TYPE_SUBMARINE, mav.MAV_AUTOPILOT_GENERIC, 128, 0, mav.MAV_STATE_ACTIVE, 3).pack(link)))
+        samples = plant.advance(t + t_ctrl - 1e-9)
+        for s in samples.imu:
+            out.append((s.time_s, 1, mav.MAVLink_highres_imu_message(
+                int(round(s.time_s * 1e6)), *s.accel_frd_m_s2, *s.gyro_frd_rad_s,
+                0, 0, 0, 0, 0, 0, 0, 0b111111, 0).pack(link)))
+        for s in samples.pressure:
+            out.append((s.time_s, 2, mav.MAVLink_scaled_pressure2_message(
+                int(round(s.time_s * 1e3)), s.press_abs_pa / 100.0, 0.0, 2000, 0).pack(link)))
+        for s in samples.attitude:
+            out.append((s.time_s, 3, mav.MAVLink_attitude_message(
+                int(round(s.time_s * 1e3)), s.roll_rad, s.pitch_rad, s.yaw_rad,
+                s.rollspeed_rad_s, s.pitchspeed_rad_s, s.yawspeed_rad_s).pack(link)))
+        for s in samples.truth:
+            times.append(s.time_s)
+            depths.append(s.pos_ned_m[2] - truth.environment.surface_depth)
+            speeds.append(float(np.linalg.norm(s.nu[:3])))
+            if mocap and round(s.time_s * MOCAP_HZ, 6).is_integer():
+                nz = 1.0 if noise else 0.0
+                e = np.array(s.euler_rad) + nz * rng.normal(0, MOCAP_NOISE_RAD, 3)
+                q = model.euler_to_quat(*e)
+                p = np.array(s.pos_ned_m) + nz * rng.normal(0, MOCAP_NOISE_M, 3)
+                out.append((s.time_s, 4, mav.MAVLink_att_pos_mocap_message(
+                    int(round(s.time_s * 1e6)), [float(c) for c in q], *[float(c) for c in p]).pack(link)))
+    out.sort(key=lambda r: (r[0], r[1]))
+    epoch = 1_767_225_600 * 1_000_000
+    with open(path, "wb") as f:
+        for t, _, pkt in out:
+            f.write(int(epoch + round(t * 1e6)).to_bytes(8, "big"))
+            f.write(pkt)
+    return SessionTruth(np.array(times), np.array(depths), np.array(speeds))
+
+
+# ------------------------------------------------------------------------------------------------
+# The cases
+
+
+@dataclass(frozen=True)
+class Case:
+    """One proof: a TRUE vehicle for the plant, a NOMINAL one for diagnose, what must be found."""
+
+    name: str
+    expect: tuple  # effect ids the findings must name (first finding = expect[0] or any of a pair); () = control
+    truth_values: dict = field(default_factory=dict)  # dotted keys changed in the true vehicle
+    nominal_values: dict = field(default_factory=dict)  # dotted keys changed in the nominal vehicle
+    check: dict = field(default_factory=dict)  # reported key (or key[index]) -> true value
+    acts: str = "everywhere"  # where the effect acts: everywhere, surface, floor, slews
+    concealment: str = ""
+    thrust_fraction: tuple | None = None
+    rig_stiffness: tuple | None = None
+    seed: int = 1
+
+
+def cases() -> list[Case]:
+    """Every effect id, every misestimated parameter, two pairs, an unknown term, controls."""
+    off = lambda e: {f"effects.{e}.enabled": False}  # noqa: E731
+    return [
+        Case("thrust_inflow missing", ("thrust_inflow",), nominal_values=off("thrust_inflow"),
+             concealment="thrust loss <= 15 % at the run speeds: under the accelerometer noise per sample"),
+        Case("motor_lag missing", ("motor_lag",), nominal_values=off("motor_lag"),
+             check={"thruster.motor_time_constant": 0.08}, acts="thrust changes",
+             concealment="acts only while propeller speed changes"),
+        Case("servo_lag missing", ("servo_lag",), nominal_values=off("servo_lag"),
+             check={"servo.time_constant": 0.03}, acts="slews", concealment="acts only while joints slew"),
+        Case("azimuth_transient missing", ("azimuth_transient",), nominal_values=off("azimuth_transient"),
+             check={"effects.azimuth_transient.gain_per_newton": 0.0126}, acts="slews",
+             concealment="acts only in joint slews, moment ~2x gyro-derivative noise"),
+        Case("surface_proximity missing", ("surface_proximity",), nominal_values=off("surface_proximity"),
+             acts="surface", concealment="acts only in the surfacing (about 10 % of the run)"),
+        Case("wall_proximity missing", ("wall_proximity",), nominal_values=off("wall_proximity"),
+             check={"effects.wall_proximity.k_wall": 0.375}, acts="floor",
+             concealment="acts only near the floor, on heave acceleration"),
+        Case("current missing", ("current",), truth_values={"environment.current": [0.04, -0.03, 0.0]},
+             check={"environment.current": [0.04, -0.03, 0.0]},
+             concealment="4-5 cm/s: drag change below the accelerometer noise"),
+        Case("added_mass heave -25 %", ("added_mass",), nominal_values={"hydro.added_mass": [3.3, 3.3, 3.075, 0.006, 0.006, 0.002]},
+             check={"hydro.added_mass[2]": 4.1}, concealment="heave force error ~1 N at peak acceleration only"),
+        Case("linear_damping surge/sway +40 %", ("linear_damping",), truth_values={"hydro.linear_damping": [2.52, 2.52, 2.6, 0.08, 0.08, 0.05]},
+             check={"hydro.linear_damping[0]": 2.52, "hydro.linear_damping[1]": 2.52},
+             concealment="0.2 N at run speed"),
+        Case("quadratic_damping heave +30 %", ("quadratic_damping",), truth_values={"hydro.quadratic_damping": [18.0, 18.0, 31.2, 0.05, 0.05, 0.03]},
+             check={"hydro.quadratic_damping[2]": 31.2}, concealment="acts at heave speed only"),
+        Case("buoyancy +0.5 %", ("buoyancy",), truth_values={"body.volume": 0.00665 * 1.005},
+             check={"body.volume": 0.00665 * 1.005}, concealment="0.33 N: 1x accelerometer noise in heave"),
+        Case("restoring_moment cb -25 %", ("restoring_moment",), truth_values={"body.cb": [0.0, 0.0, -0.015]},
+             check={"body.cb[2]": -0.015}, concealment="righting moment error at small angles"),
+        Case("imu_bias gyro", ("imu_bias",), truth_values={"sensors.gyro_bias": [0.006, -0.005, 0.004]},
+             check={"sensors.gyro_bias": [0.006, -0.005, 0.004]}, concealment="bias 1.3-2x the gyro noise"),
+        Case("sensor_delay 30 ms", ("sensor_delay",), truth_values={"sensors.delay": 0.03},
+             check={"sensors.delay": 0.03}, concealment="30 ms latency of every vehicle sensor stream"),
+        Case("thruster_fault unit 3 at 75 %", ("thruster_fault",), thrust_fraction=(1.0, 1.0, 0.75, 1.0),
+             check={"thruster_fault.unit[2].thrust_fraction": 0.75}, concealment="0.25 x one jet's thrust"),
+        Case("azimuth_transient masked by current", ("azimuth_transient", "current"),
+             nominal_values=off("azimuth_transient"), truth_values={"environment.current": [0.05, 0.04, 0.0]},
+             check={"effects.azimuth_transient.gain_per_newton": 0.0126}, acts="slews",
+             concealment="a steady current masks the transient's imprint"),
+        Case("wall_proximity masked by heave damping", ("wall_proximity", "linear_damping"),
+             nominal_values={**off("wall_proximity"), "hydro.linear_damping": [1.8, 1.8, 2.0, 0.08, 0.08, 0.05]},
+             check={"effects.wall_proximity.k_wall": 0.375}, acts="floor",
+             concealment="a heave damping error masks the floor effect"),
+        Case("unknown: tether spring", ("unknown",), rig_stiffness=(0.6, 0.6, 0.0),
+             concealment="a 0.6 N/m horizontal tether: no known effect has its shape"),
+        Case("control (seed 1)", (), seed=1),
+        Case("control (seed 2)", (), seed=2),
+        Case("control (seed 3)", (), seed=3),
+    ]
+
+
+def _reported(findings: list, effect: str, key: str):
+    """The fitted value of `key` (optionally `key[i]`) in the first finding naming `effect`."""
+    base, _, idx = key.partition("[")
+    for f in findings:
+        if f["effect"] != effect:
+            continue
+        params = f["parameters"]
+        if key in params:
+            return params[key]
+        if base in params and idx:
+            return params[base][int(idx.rstrip("]"))]
+    return None
+
+
+def _param_error(case: Case, findings: list) -> float | None:
+    """Largest relative error of the checked parameters (vector: norm of difference / norm)."""
+    if not case.check:
+        return None
+    errs = []
+    for key, truth in case.check.items():
+        got = _reported(findings, case.expect[0], key)
+        if got is None:
+            return float("inf")
+        t = np.atleast_1d(np.asarray(truth, float))
+        g = np.atleast_1d(np.asarray(got, float))
+        errs.append(float(np.linalg.norm(g - t) / max(np.linalg.norm(t), 1e-12)))
+    return max(errs)
+
+
+def _acts_mask(case: Case, truth: SessionTruth, vehicle: Vehicle) -> np.ndarray:
+    e = vehicle.environment
+    R = vehicle.body.radius
+    if case.acts == "surface":
+        return truth.depth_m < 1.5 * R
+    if case.acts == "floor":
+        return (e.floor_depth - e.surface_depth - truth.depth_m) < 2.0 * R
+    return np.ones(len(truth.time_s), bool)
+
+
+def run_case(case: Case, out_dir: Path, reference: Vehicle, duration_s: float = 120.0, progress=None) -> dict:
+    """Record, diagnose and check one case; returns its prove.json row."""
+    from ground.diagnose import diagnose
+    from ground.diagnose.report import write_html, write_json
+    from ground.recording import read_recording
+
+    t0 = time.perf_counter()
+    truth_v = reference.with_values(case.truth_values) if case.truth_values else reference
+    nominal = reference.with_values(case.nominal_values) if case.nominal_values else reference
+    slug = "".join(c if c.isalnum() else "_" for c in case.name).strip("_")
+    rec_path = out_dir / f"{slug}.tlog"
+    truth = record_session(truth_v, rec_path, duration_s, seed=case.seed,
+                           thrust_fraction=case.thrust_fraction, rig_stiffness=case.rig_stiffness)
+    (out_dir / f"{slug}.nominal.toml").write_text(_vehicle_note(case))
+    rec = read_recording(rec_path)
+    diag = diagnose(rec, nominal, progress=progress)
+    rep = diag.report
+    write_json(rep, out_dir / f"{slug}.json")
+    try:
+        write_html(diag, out_dir / f"{slug}_report")
+    except Exception as exc:  # a plot must not lose the verdict
+        print(f"report plots for {case.name} failed: {exc}", file=sys.stderr)
+    findings = rep["findings"]
+    named = [f["effect"] for f in findings]
+    before = rep["fit"]["holdout"]["before"]["total"]
+    after = rep["fit"]["holdout"]["after"]["total"]
+    drop = (before - after) / before if before > 0 else 0.0
+    row = {"case": case.name, "expect": list(case.expect), "named": named,
+           "concealment": case.concealment, "nrmse_before": before, "nrmse_after": after,
+           "nrmse_drop": round(drop, 3),
+           "nrmse_raw_before": rep["fit"]["holdout"]["raw"]["before"],
+           "nrmse_raw_after": rep["fit"]["holdout"]["raw"]["after"]}
+    if not case.expect:
+        row["checks"] = {"no_finding": not findings}
+        row["param_error"] = None
+    else:
+        perr = _param_error(case, findings)
+        acts = _acts_mask(case, truth, reference)
+        t_act = truth.time_s[acts]
+        overlap = any(((t_act >= w["t0"]) & (t_act <= w["t1"])).any() for w in rep["mismatch"]["windows"])
+        first_ok = bool(findings) and (findings[0]["effect"] == case.expect[0]
+                                        or (len(case.expect) > 1 and findings[0]["effect"] in case.expect))
+        row["param_error"] = None if perr is None or not math.isfinite(perr) else round(perr, 4)
+        row["param_reported"] = perr is None or math.isfinite(perr)
+        row["checks"] = {
+            "named_first": first_ok,
+            "windows_overlap": bool(overlap),
+            "parameter_within_15pct": perr is None or (math.isfinite(perr) and perr <= 0.15),
+            "nrmse_drop_40pct": drop >= 0.40,
+        }
+        if len(case.expect) > 1:
+            row["checks"]["both_named"] = set(case.expect) <= set(named)
+    row["passed"] = all(row["checks"].values())
+    row["time_s"] = round(time.perf_counter() - t0, 1)
+    row["diagnose_s"] = rep["elapsed_s"]
+    return row
+
+
+def _vehicle_note(case: Case) -> str:
+    lines = [f"# nominal vehicle of case '{case.name}': the reference asr4 with these keys changed", ""]
+    for k, v in case.nominal_values.items():
+        lines.append(f"# {k} = {v}")
+    lines.append("# the TRUE vehicle (plant) differs by:")
+    for k, v in case.truth_values.items():
+        lines.append(f"# {k} = {v}")
+    if case.thrust_fraction:
+        lines.append(f"# thrust_fraction = {list(case.thrust_fraction)}")
+    if case.rig_stiffness:
+        lines.append(f"# tether spring (N/m, NED) = {list(case.rig_stiffness)}")
+    return "\n".join(lines) + "\n"
+
+
+def table(rows: list[dict]) -> str:
+    head = f"{'case':40s} {'named':32s} {'param err':>9s} {'NRMSE before':>12s} {'after':>7s} {'drop':>6s} {'time':>6s}  verdict"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        named = ",".join(r["named"]) or "-"
+        pe = ("-" if r.get("param_reported", True) else "n/a") if r["param_error"] is None else f"{100 * r['param_error']:.1f}%"
+        failed = [k for k, ok in r["checks"].items() if not ok]
+        verdict = "PASS" if r["passed"] else "FAIL (" + ", ".join(failed) + ")"
+        lines.append(f"{r['case'][:40]:40s} {named[:32]:32s} {pe:>9s} {r['nrmse_before']:12.3f} "
+                     f"{r['nrmse_after']:7.3f} {100 * r['nrmse_drop']:5.0f}% {r['time_s']:5.0f}s  {verdict}")
+    n_pass = sum(r["passed"] for r in rows)
+    lines.append(f"{n_pass}/{len(rows)} cases pass")
+    return "\n".join(lines)
+
+
+def configure(parser) -> None:
+    parser.add_argument("--out", default="prove_out", help="directory for recordings, reports and prove.json")
+    parser.add_argument("--vehicle", default=None, help="reference vehicle TOML (default asr4)")
+    parser.add_argument("--duration", type=float, default=120.0, help="pool-session length, s (default 120)")
+    parser.add_argument("--only", default=None, help="run only cases whose name contains this text")
+    parser.add_argument("--quiet", action="store_true")
+
+
+def run(args) -> int:
+    from onboard.vehicle import VehicleFileError
+
+    try:
+        reference = load_vehicle(args.vehicle)
+    except VehicleFileError as exc:
+        print(f"jetloop prove: {exc}", file=sys.stderr)
+        return 2
+    if args.duration < 60:
+        print("jetloop prove: --duration must be at least 60 s (the session needs it)", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"jetloop prove: cannot create {out}: {exc}", file=sys.stderr)
+        return 2
+    chosen = [c for c in cases() if args.only is None or args.only in c.name]
+    if not chosen:
+        print(f"jetloop prove: no case matches {args.only!r}", file=sys.stderr)
+        return 2
+    rows = []
+    for i, case in enumerate(chosen):
+        if not args.quiet:
+            print(f"[{i + 1}/{len(chosen)}] {case.name} ...", file=sys.stderr, flush=True)
+        rows.append(run_case(case, out, reference, args.duration))
+        (out / "prove.json").write_text(json.dumps({"duration_s": args.duration, "cases": rows}, indent=2) + "\n")
+        if not args.quiet:
+            r = rows[-1]
+            print(f"    named {r['named']}, {'PASS' if r['passed'] else 'FAIL'} ({r['time_s']} s)", file=sys.stderr)
+    print(table(rows))
+    return 0
