@@ -496,7 +496,7 @@ class OnboardLoop:
             self.allocator.previous = None
             if t >= self._next_error_text:
                 self._next_error_text = t + 1.0
-                self._statustext(mavlink.MAV_SEVERITY_ERROR, f"step error, jets safe: {type(exc).__name__}: {exc}")
+                self._statustext(mavlink.MAV_SEVERITY_ERROR, f"step error: {exc}")  # jets safe
         self._was_enabled = self.armed and not failed
         self.command = command
         elapsed = time.perf_counter() - t0
