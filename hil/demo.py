@@ -247,10 +247,16 @@ def run_closed_loop(
         if progress:
             progress(f"flying {duration_s:.0f} s of mission in lock-step")
         n = int(round(duration_s * config.control_rate_hz))
-        while ep.k < n:
-            ep.step()
-            if progress and ep.k % int(5 * config.control_rate_hz) == 0:
-                progress(f"  t = {ep.time_s:5.1f} s")
+        try:
+            while ep.k < n:
+                ep.step()
+                if progress and ep.k % int(5 * config.control_rate_hz) == 0:
+                    progress(f"  t = {ep.time_s:5.1f} s")
+        except EndpointError as exc:
+            stop.set()
+            _drain(results, got, 10.0, want=("onboard",))
+            why = got.get("onboard", {}).get("error")
+            raise EndpointError(f"{exc}" + (f"; the onboard loop failed: {why}" if why else "")) from None
     finally:
         wall = time.perf_counter() - wall0
         stop.set()
