@@ -248,3 +248,132 @@ def test_ground_cli_once_prints_a_frame_and_rejects_bad_arguments(tmp_path, caps
     assert "expected MESSAGE=HZ" in capsys.readouterr().err
     assert main(["ground", "--cmd", "dive", "--once"]) == 2
     assert "expected arm | disarm" in capsys.readouterr().err
+
+
+# -- the serial path: two pseudo-terminal pairs joined by a 57600-baud "radio" --------------------
+
+class _Radio:
+    """Joins two pty masters like a pair of 57600-baud telemetry radios: at most 5760 bytes/s each
+    way (8N1: 10 bits a byte), a 4 KiB buffer each way; bytes that do not fit are dropped (counted)."""
+
+    BYTES_PER_S = 57600 / 10
+    BUFFER = 4096
+
+    def __init__(self, a_fd, b_fd):
+        import threading
+
+        self.fds = (a_fd, b_fd)
+        self.buf = [bytearray(), bytearray()]  # a->b, b->a
+        self.dropped = [0, 0]
+        self.carried = [0, 0]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        import os
+        import select
+
+        last = time.monotonic()
+        while not self._stop.is_set():
+            ready, _, _ = select.select(list(self.fds), [], [], 0.005)
+            for i, fd in enumerate(self.fds):
+                if fd in ready:
+                    try:
+                        data = os.read(fd, 4096)
+                    except OSError:
+                        continue
+                    room = self.BUFFER - len(self.buf[i])
+                    self.buf[i] += data[:room]
+                    self.dropped[i] += max(0, len(data) - room)
+            now = time.monotonic()
+            allowance = int(self.BYTES_PER_S * (now - last))
+            if allowance > 0:
+                last = now
+                for i in (0, 1):
+                    chunk = bytes(self.buf[i][:allowance])
+                    if chunk:
+                        os.write(self.fds[1 - i], chunk)
+                        del self.buf[i][:len(chunk)]
+                        self.carried[i] += len(chunk)
+
+    def idle(self):
+        return not self.buf[0] and not self.buf[1]
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(2.0)
+
+
+def _serial_run(tmp_path, rates, seconds):
+    """The onboard loop's telemetry over a pty + 57600-baud radio to a ground session on the other
+    pty; returns (session, radio, counts of messages recorded, loop)."""
+    import os
+
+    from ground.recording import read_recording
+    from onboard.loop import LoopConfig, OnboardLoop, WallClock
+
+    vm, vs = os.openpty()
+    gm, gs = os.openpty()
+    radio = _Radio(vm, gm)
+    session = GroundSession(f"{os.ttyname(gs)}:57600", load_vehicle(), record_dir=tmp_path, rates=rates)
+    main = Link("udpout:127.0.0.1:9")  # the autopilot side is not under test: discard port
+    ground_link = Link(f"{os.ttyname(vs)}:57600")
+    loop = OnboardLoop(load_vehicle(), main, WallClock(), LoopConfig(), ground=ground_link)
+    try:
+        loop.start()
+        t0 = time.monotonic()
+        while rates and time.monotonic() - t0 < 3.0:  # the vehicle waits for the ground's requests
+            session.poll(0.01)
+            g = ground_link.recv(0.01)
+            while g is not None:
+                loop.handle(g)
+                g = ground_link.recv(0.0)
+            if sum(1 for n in rates if loop.rates.rate_hz.get(n) == rates[n]) == len(rates):
+                break
+        t0 = time.monotonic()
+        for k in range(int(seconds * 100)):  # 100 Hz control ticks
+            g = ground_link.recv(0.0)
+            while g is not None:
+                loop.handle(g)
+                g = ground_link.recv(0.0)
+            loop.step(0.01 * k)
+            session.poll(0.0)
+            time.sleep(max(0.0, t0 + 0.01 * (k + 1) - time.monotonic()))
+        deadline = time.monotonic() + 5.0
+        while not radio.idle() and time.monotonic() < deadline:
+            session.poll(0.02)
+        for _ in range(10):
+            session.poll(0.02)
+    finally:
+        radio.close()
+        session.close()
+        ground_link.close()
+        main.close()
+        os.close(vm), os.close(gm), os.close(vs), os.close(gs)
+    counts = read_recording(session.recorder.files[0]).messages
+    return session, radio, counts, loop
+
+
+def test_serial_57600_with_requested_rates_loses_nothing(tmp_path):
+    rates = {"ATTITUDE": 5.0, "NAMED_VALUE_FLOAT": 1.0, "DEBUG_FLOAT_ARRAY": 1.0, "SERVO_OUTPUT_RAW": 5.0}
+    session, radio, counts, loop = _serial_run(tmp_path / "asked", rates, seconds=3.0)
+    assert {n: loop.rates.rate_hz[n] for n in rates} == rates  # the vehicle took every request
+    st = session.station
+    assert radio.dropped == [0, 0]
+    assert st.sources[(1, 1)].lost == 0 and st.bad_packets == 0 and st.garbage_bytes == 0
+    # 3 s at the asked rates (the first due at t = 0): 5 Hz -> 15, 1 Hz -> 3
+    assert counts["ATTITUDE"] == 15 and counts["SERVO_OUTPUT_RAW"] == 15
+    assert counts["DEBUG_FLOAT_ARRAY"] == 3
+    assert radio.carried[0] / 3.0 < _Radio.BYTES_PER_S  # the radio was never saturated
+    acks = [e for _, e in st.events if e.startswith("command 511: accepted")]
+    assert len(acks) == 4
+
+
+def test_serial_57600_at_default_rates_floods_the_radio(tmp_path):
+    """The same link without asking for rates: 100 Hz SERVO_OUTPUT_RAW and 10 Hz telemetry
+    (~10 kB/s) overrun a 5.76 kB/s radio, and the ground sees the loss (the check can fail)."""
+    session, radio, counts, loop = _serial_run(tmp_path / "default", {}, seconds=2.0)
+    assert radio.dropped[0] > 0
+    st = session.station
+    assert st.sources[(1, 1)].lost > 0 or st.bad_packets > 0
