@@ -17,7 +17,8 @@ import time
 
 def configure(parser) -> None:
     parser.add_argument("--link", required=True, metavar="CONN",
-                        help="autopilot / plant link: udpin:HOST:PORT, udpout:HOST:PORT or /dev/ttyXXX:BAUD")
+                        help="autopilot / plant link: udpin:HOST:PORT, udpout:HOST:PORT, /dev/ttyXXX:BAUD, "
+                             "or tlog:PATH to replay a recording (with --lockstep)")
     parser.add_argument("--ground", default=None, metavar="CONN", help="separate telemetry link to the ground station")
     parser.add_argument("--vehicle", default=None, help="vehicle TOML (default: the reference vehicle asr4)")
     mode = parser.add_mutually_exclusive_group()

@@ -4,6 +4,7 @@ Connection strings (the MAVProxy / pymavlink spelling):
     udpin:HOST:PORT     listen on HOST:PORT; replies go to whoever spoke last (port 0: any free port)
     udpout:HOST:PORT    send to HOST:PORT from an ephemeral local port; receive on that port
     /dev/ttyXXX:BAUD    a serial line through pyserial (also `serial:/dev/ttyXXX:BAUD`)
+    tlog:PATH           replay a .tlog recording as if it arrived on a link (what is sent is dropped)
 
 The codec is one pymavlink `MAVLink` parser object built from the ardupilotmega dialect module
 itself, not from pymavlink's process-wide dialect chosen by an environment variable (STYLE.md).
@@ -43,7 +44,11 @@ class Endpoint:
 def parse_connection(text: str) -> Endpoint:
     """`udpin:HOST:PORT`, `udpout:HOST:PORT`, `[serial:]/dev/ttyXXX:BAUD` -> Endpoint."""
     s = str(text).strip()
-    expected = "expected udpin:HOST:PORT, udpout:HOST:PORT or /dev/ttyXXX:BAUD"
+    expected = "expected udpin:HOST:PORT, udpout:HOST:PORT, /dev/ttyXXX:BAUD or tlog:PATH"
+    if s.startswith("tlog:"):
+        if not s[5:]:
+            raise LinkError(f"link {text!r}: tlog: needs a file path")
+        return Endpoint("tlog", device=s[5:])
     for prefix, kind in (("udpin:", "udpin"), ("udp:", "udpin"), ("udpout:", "udpout")):
         if s.startswith(prefix):
             host, sep, port = s[len(prefix):].rpartition(":")
@@ -136,13 +141,50 @@ class _Serial:
         self.port.close()
 
 
+class _Replay:
+    """A .tlog read back packet by packet (8-byte big-endian time, then one MAVLink packet)."""
+
+    def __init__(self, ep: Endpoint):
+        try:
+            with open(ep.device, "rb") as f:
+                self.data = f.read()
+        except OSError as exc:
+            raise LinkError(f"link tlog:{ep.device}: cannot read recording: {exc.strerror or exc}") from exc
+        self.pos = 0
+        self.local_address = (ep.device, 0)
+
+    def write(self, data: bytes) -> bool:
+        return True  # a recording does not listen
+
+    def read(self, timeout_s: float) -> bytes:
+        d, i = self.data, self.pos
+        if i + 9 > len(d):
+            self.pos = len(d)
+            return d[i + 8:] if i + 8 < len(d) else b""
+        start = i + 8
+        magic = d[start]
+        if magic == 0xFD and start + 3 <= len(d):
+            n = 12 + d[start + 1] + (13 if d[start + 2] & 0x01 else 0)
+        elif magic == 0xFE and start + 2 <= len(d):
+            n = 8 + d[start + 1]
+        else:  # not a packet where one should be: hand the rest to the parser, which counts it
+            self.pos = len(d)
+            return d[start:]
+        self.pos = start + n
+        return d[start:start + n]
+
+    def close(self) -> None:
+        pass
+
+
 class Link:
     """send(msg) / recv(timeout_s) of MAVLink messages over one transport; counts what was bad."""
 
     def __init__(self, connection: str, source_system: int = 1, source_component: int = 1):
         self.endpoint = parse_connection(connection)
         self.connection = connection
-        self._io = _Serial(self.endpoint) if self.endpoint.kind == "serial" else _Udp(self.endpoint)
+        kind = self.endpoint.kind
+        self._io = _Serial(self.endpoint) if kind == "serial" else _Replay(self.endpoint) if kind == "tlog" else _Udp(self.endpoint)
         self.mav = mavlink.MAVLink(None, srcSystem=source_system, srcComponent=source_component)
         self.mav.robust_parsing = True
         self._ready: deque = deque()

@@ -35,11 +35,12 @@ def test_connection_strings():
     assert parse_connection("udpout:127.0.0.1:14551") == Endpoint("udpout", host="127.0.0.1", port=14551)
     assert parse_connection("/dev/ttyACM0:115200") == Endpoint("serial", device="/dev/ttyACM0", baud=115200)
     assert parse_connection("serial:/dev/ttyUSB1:57600") == Endpoint("serial", device="/dev/ttyUSB1", baud=57600)
+    assert parse_connection("tlog:rec/flight.tlog") == Endpoint("tlog", device="rec/flight.tlog")
 
 
-@pytest.mark.parametrize("bad", ["udpin:14550", "udpout:host:port", "tcp:1.2.3.4:5", "/dev/ttyS0", "udpin:h:70000", ""])
+@pytest.mark.parametrize("bad", ["udpin:14550", "udpout:host:port", "tcp:1.2.3.4:5", "/dev/ttyS0", "udpin:h:70000", "", "tlog:"])
 def test_bad_connection_string_names_what_was_expected(bad):
-    with pytest.raises(LinkError, match="expected udpin:HOST:PORT"):
+    with pytest.raises(LinkError, match="expected udpin:HOST:PORT|needs a file path"):
         parse_connection(bad)
 
 
@@ -165,3 +166,20 @@ def test_serial_pty_garbage_between_packets(pty_link):
     msgs = drain(link)
     assert [m.custom_mode for m in msgs] == list(range(20))
     assert link.garbage_bytes == sent_junk
+
+
+def test_tlog_replay_reads_packets_in_order_and_counts_a_torn_tail(tmp_path):
+    src = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    path = tmp_path / "r.tlog"
+    blob = b""
+    for i in range(5):
+        pkt = heartbeat(custom_mode=i).pack(src)
+        src.seq += 1
+        blob += (1_000_000 + i).to_bytes(8, "big") + pkt
+    path.write_bytes(blob + (2_000_000).to_bytes(8, "big") + pkt[:9])  # a packet cut by a crash
+    link = Link(f"tlog:{path}")
+    link.send(heartbeat())  # a recording does not listen: dropped, not an error
+    assert [m.custom_mode for m in drain(link, 0.0)] == [0, 1, 2, 3, 4]
+    assert link.garbage_bytes == 0 and len(link.mav.buf) - link.mav.buf_index == 9  # waiting, not lost
+    with pytest.raises(LinkError, match="cannot read recording"):
+        Link(f"tlog:{tmp_path / 'missing.tlog'}")
