@@ -44,10 +44,10 @@ def n_of(result, t0, t1):
 def test_same_seed_gives_the_same_recording_byte_for_byte(tmp_path):
     runs = {}
     for name, seed in (("a", 3), ("b", 3), ("c", 4)):
-        r = run_closed_loop(V, dive_and_hold(), 2.5, seed=seed, out_dir=tmp_path / name)
-        assert r.endpoint["commands_applied"] == r.endpoint["periods"] == 250
+        r = run_closed_loop(V, dive_and_hold(), 1.5, seed=seed, out_dir=tmp_path / name)
+        assert r.endpoint["commands_applied"] == r.endpoint["periods"] == 150
         runs[name] = r.tlog.read_bytes()
-    assert len(runs["a"]) > 250 * 200  # every frame: sensors, marker, ESC, command, servo PWM
+    assert len(runs["a"]) > 150 * 200  # every frame: sensors, marker, ESC, command, servo PWM
     assert runs["a"] == runs["b"]
     assert runs["a"] != runs["c"]  # the seed matters: the test can fail
 
@@ -55,28 +55,30 @@ def test_same_seed_gives_the_same_recording_byte_for_byte(tmp_path):
 # -- failsafe and garbage ---------------------------------------------------------------------------
 
 def test_imu_loss_puts_the_jets_safe_and_the_vehicle_rises():
-    loss = (3.0, 3.6)
-    r = run_closed_loop(V, dive_and_hold(), 5.0, seed=1, faults=Faults(imu_dropouts_s=(loss,)))
+    loss = (2.0, 2.6)
+    r = run_closed_loop(V, dive_and_hold(), 3.6, seed=1, faults=Faults(imu_dropouts_s=(loss,)))
     assert r.onboard["failsafe_entries"] == 1
-    assert np.all(n_of(r, 2.0, 3.0).max(axis=1) > 1.0)  # flying before the loss
+    assert np.all(n_of(r, 1.0, 2.0).max(axis=1) > 1.0)  # flying before the loss
     # 0.3 s without IMU (+ one tick to notice): jets off and joints neutral, latched after the IMU returns
     off = [c for t, c in r.commands if t >= loss[0] + 0.3 + 2 * PERIOD]
     assert off and all(np.all(c == 0.0) for c in off)
     still_on = [c for t, c in r.commands if loss[0] <= t < loss[0] + 0.3 - PERIOD]
     assert still_on and all(np.any(c[:4] > 0) for c in still_on)
     depth = {round(s.time_s, 2): s.pos_ned_m[2] for s in r.truth}
-    # net buoyancy 1.47 N on 6.5 + 4.1 kg (added mass): 0.14 m/s^2, ~0.17 m in 1.6 s less damping
-    assert depth[4.9] < depth[3.3] - 0.05  # positively buoyant: an ascent
+    # net buoyancy 1.47 N on 6.5 + 4.1 kg (added mass): 0.14 m/s^2, ~0.09 m in 1.2 s less damping
+    assert depth[3.5] < depth[2.3] - 0.03  # positively buoyant: an ascent
 
 
 def test_garbage_on_the_link_does_not_stop_the_loop():
-    times = tuple(1.0 + 0.25 * i for i in range(12))
-    r = run_closed_loop(V, dive_and_hold(), 4.5, seed=2, faults=Faults(garbage_times_s=times, garbage_bytes=400))
-    assert r.endpoint["commands_applied"] == r.endpoint["periods"] == 450  # every frame answered
+    times = tuple(1.0 + 0.1 * i for i in range(15))
+    r = run_closed_loop(V, dive_and_hold(), 3.0, seed=2, faults=Faults(garbage_times_s=times, garbage_bytes=400))
+    assert r.endpoint["commands_applied"] == r.endpoint["periods"] == 300  # every frame answered
     assert r.onboard["link"]["garbage_bytes"] >= 0.9 * len(times) * 400
     assert r.onboard["failsafe_entries"] == 0
-    depth = np.array([s.pos_ned_m[2] for s in r.truth if s.time_s > 4.0])
-    assert np.all(np.abs(depth - 0.4) < 0.1)  # still diving to 0.4 m as if nothing happened
+    clean = run_closed_loop(V, dive_and_hold(), 3.0, seed=2)
+    depth = np.array([s.pos_ned_m[2] for s in r.truth])
+    depth_clean = np.array([s.pos_ned_m[2] for s in clean.truth])
+    assert np.max(np.abs(depth - depth_clean)) < 0.01  # flew as if nothing had happened
 
 
 # -- the mission ------------------------------------------------------------------------------------
