@@ -28,6 +28,8 @@ def configure(parser) -> None:
                         help="hil: HIL_ACTUATOR_CONTROLS + SERVO_OUTPUT_RAW (default); pwm: SERVO_OUTPUT_RAW only")
     parser.add_argument("--allocator", choices=("qp", "baseline"), default="qp")
     parser.add_argument("--no-compensation", action="store_true", help="turn the seed-004 transient compensation off")
+    parser.add_argument("--estimator", choices=("filterpy", "compiled"), default="filterpy",
+                        help="EKF backend: filterpy (default) or the same equations compiled with numba")
     parser.add_argument("--rate", type=float, default=None, metavar="HZ", help="control rate (default: the IMU rate)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of loop time")
     parser.add_argument("--idle-exit", type=float, default=None, metavar="S",
@@ -55,7 +57,7 @@ def run(args) -> int:
         print(f"jetloop onboard: {exc}", file=sys.stderr)
         return 2
     config = LoopConfig(control_rate_hz=rate, output=args.output, allocator=args.allocator,
-                        compensation=not args.no_compensation)
+                        compensation=not args.no_compensation, estimator_backend=args.estimator)
     clock = VehicleClock() if args.lockstep else WallClock()
     loop = OnboardLoop(vehicle, link, clock, config, ground=ground)
     print(f"jetloop onboard: {vehicle.name} on {args.link} ({'lock-step' if args.lockstep else 'real time'}, "

@@ -186,11 +186,8 @@ class LoopConfig:
     qp_time_budget_s: float | None = None  # None: 1 ms in real time, unlimited in lock-step
     mode_at_start: str = "guided"
     compensation_iterations: int = 2
-    # QP penalty on the change of each unit's force between steps. With the allocator's own
-    # default (1e-2) the azimuths wander in the null space from step to step, and every swing
-    # costs thrust through the seed-004 axial loss (F1x is driven by |alpha'|): in closed loop the
-    # jets then give ~30 % less than planned and depth is lost. 1.0 keeps the joints calm.
-    allocation_change_weight: float = 1.0
+    allocation_change_weight: float | None = None  # None: the allocator's default (AllocationConfig)
+    estimator_backend: str = "filterpy"  # or "compiled": the same EKF equations in numba (onboard.estimator)
     signing_key: bytes | None = None  # MAVLink 2 signing on: unsigned commands refused (ground.commands)
 
     def __post_init__(self):
@@ -200,6 +197,8 @@ class LoopConfig:
             raise ValueError(f"output: expected 'hil' or 'pwm', got {self.output!r}")
         if self.allocator not in ("qp", "baseline"):
             raise ValueError(f"allocator: expected 'qp' or 'baseline', got {self.allocator!r}")
+        if self.estimator_backend not in ("filterpy", "compiled"):
+            raise ValueError(f"estimator_backend: expected 'filterpy' or 'compiled', got {self.estimator_backend!r}")
         if self.mode_at_start not in MODES:
             raise ValueError(f"mode_at_start: expected one of {sorted(MODES)}, got {self.mode_at_start!r}")
 
@@ -271,12 +270,12 @@ class OnboardLoop:
         self.config = config
         self.period_s = 1.0 / config.control_rate_hz
         self.k = vehicle.n_units
-        self.estimator = estimator if estimator is not None else Estimator(vehicle)
+        self.estimator = estimator if estimator is not None else Estimator(vehicle, backend=config.estimator_backend)
         self.controller = controller if controller is not None else Controller(vehicle)
         # In lock-step nothing may depend on the wall clock: the QP's time budget is lifted there.
         budget = config.qp_time_budget_s or (10.0 if clock.lockstep else 1e-3)
-        alloc_cfg = AllocationConfig.from_vehicle(vehicle, time_budget_s=budget,
-                                                  change_weight=config.allocation_change_weight)
+        overrides = {} if config.allocation_change_weight is None else {"change_weight": config.allocation_change_weight}
+        alloc_cfg = AllocationConfig.from_vehicle(vehicle, time_budget_s=budget, **overrides)
         cls = QpAllocator if config.allocator == "qp" else PseudoInverseAllocator
         self.allocator = cls(vehicle, self.period_s, alloc_cfg)
         self.compensator = TransientCompensator(vehicle, self.period_s) if config.compensation else None
