@@ -282,7 +282,7 @@ def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: Co
     theta0 = np.array(cand.x0 if x0 is None else x0, float)
     lo, hi = np.array(cand.lower, float), np.array(cand.upper, float)
     theta0 = np.clip(theta0, lo, hi)
-    scale = np.maximum(np.abs(theta0), (hi - lo) * 0.01)
+    scale = np.where(np.abs(theta0) > 0, np.maximum(np.abs(theta0), (hi - lo) * 0.01), (hi - lo) * 0.05)
     prior_w = 0.3  # weak pull to the start: a parameter the data do not see stays put
 
     def fun(th):
@@ -294,13 +294,16 @@ def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: Co
         return np.concatenate([r.ravel(), prior_w * (th - theta0) / scale])
 
     if cand.n_params:
-        # trf with a forward-difference Jacobian: each iteration costs n + 1 residual
-        # evaluations; most candidates enter the residual (nearly) linearly, so a few suffice
-        sol = least_squares(fun, theta0, bounds=(lo, hi), x_scale=scale, diff_step=1e-3,
-                            max_nfev=max_iter, method="trf")
-        theta = sol.x
-    else:
-        theta = theta0
+        # trf with a forward-difference Jacobian, in scaled variables z = (theta - theta0) / scale + 1
+        # (order one, so the relative difference step is a sensible absolute one even where theta0
+        # is 0); each iteration costs n + 1 residual evaluations, and most candidates enter the
+        # residual (nearly) linearly, so a few suffice
+        to_theta = lambda z: theta0 + (np.asarray(z) - 1.0) * scale  # noqa: E731
+        zlo, zhi = (lo - theta0) / scale + 1.0, (hi - theta0) / scale + 1.0
+        z0 = np.clip(np.ones_like(theta0), zlo + 1e-9, zhi - 1e-9)
+        sol = least_squares(lambda z: fun(to_theta(z)), z0, bounds=(zlo, zhi), diff_step=1e-2,
+                            max_nfev=max_iter + (2 if cand.n_params <= 2 else 0), method="trf")
+        theta = np.clip(to_theta(sol.x), lo, hi)
     cm = cand.apply(theta, base)
     res = ev.residual(cm)
     c0_tr, _ = chi2(res0, split, tr)

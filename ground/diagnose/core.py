@@ -75,7 +75,7 @@ def significant(f: Fit, gate: float) -> bool:
             and f.explained > MIN_EXPLAINED and f.bic < -10.0)
 
 
-def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 150.0) -> Diagnosis:
+def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0) -> Diagnosis:
     t_start = time.perf_counter()
     _say(progress, f"replaying {rec.duration_s:.1f} s through the nominal model '{vehicle.name}'")
     ev = Evaluator(rec, vehicle)
@@ -120,7 +120,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 150.0) -> 
         chosen.append(best)
         final = best
         # --- a second effect on top of the first
-        others = [f for f in fits[1:5] if f.delta_holdout > 0]
+        others = [f for f in fits[1:4] if f.delta_holdout > 0]
         pair_best = None
         for other in others:
             pc = combine(best.candidate, other.candidate)

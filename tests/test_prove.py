@@ -1,0 +1,96 @@
+"""`jetloop prove`: the checks themselves, a representative case fast, every case slow."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ground.cli import main
+from ground.prove import Case, _param_error, cases, run_case, session_setpoints, table
+from onboard.vehicle import load_vehicle
+
+V = load_vehicle()
+
+
+def test_cases_cover_every_effect_and_parameter_and_controls():
+    expected = {c.expect[0] for c in cases() if c.expect}
+    assert expected >= {"thrust_inflow", "motor_lag", "servo_lag", "azimuth_transient", "surface_proximity",
+                        "wall_proximity", "current", "added_mass", "linear_damping", "quadratic_damping",
+                        "buoyancy", "restoring_moment", "imu_bias", "sensor_delay", "thruster_fault", "unknown"}
+    assert sum(1 for c in cases() if not c.expect) >= 3
+    assert any(len(c.expect) == 2 for c in cases())  # a second effect masking the first
+    # every case's vehicles are valid vehicle files
+    for c in cases():
+        V.with_values(c.truth_values)
+        V.with_values(c.nominal_values)
+
+
+def test_session_has_dives_runs_turns_and_a_surfacing():
+    sp = session_setpoints(120.0, 0)
+    depths = [s[1] for s in sp]
+    assert min(depths) < 0.0 < 0.9 < max(depths)  # a surfacing and the floor (1.2 m)
+    assert any(abs(s[2]) > 1.0 for s in sp)  # turns
+    assert any(abs(s[3]) > 1.0 for s in sp) and any(abs(s[4]) > 1.0 for s in sp)  # surge and sway runs
+
+
+def test_parameter_error_is_relative_and_missing_parameters_fail():
+    case = Case("x", ("buoyancy",), check={"body.volume": 0.0067})
+    found = [{"effect": "buoyancy", "parameters": {"body.volume": 0.0067 * 1.1}}]
+    assert _param_error(case, found) == pytest.approx(0.1)
+    vec = Case("y", ("added_mass",), check={"hydro.added_mass[2]": 4.0})
+    got = [{"effect": "added_mass", "parameters": {"hydro.added_mass": [3.3, 3.3, 3.0, 0, 0, 0]}}]
+    assert _param_error(vec, got) == pytest.approx(0.25)
+    assert math.isinf(_param_error(case, [{"effect": "current", "parameters": {}}]))
+
+
+def test_table_keeps_failures():
+    rows = [
+        {"case": "a", "named": ["buoyancy"], "param_error": 0.01, "nrmse_before": 0.2, "nrmse_after": 0.05,
+         "nrmse_drop": 0.75, "time_s": 10, "checks": {"named_first": True}, "passed": True},
+        {"case": "b", "named": [], "param_error": None, "param_reported": False, "nrmse_before": 0.2,
+         "nrmse_after": 0.2, "nrmse_drop": 0.0, "time_s": 10, "checks": {"named_first": False}, "passed": False},
+    ]
+    text = table(rows)
+    assert "1/2 cases pass" in text and "FAIL (named_first)" in text
+
+
+def test_buoyancy_case_passes(tmp_path):
+    """Representative: a 0.5 % volume error (0.33 N, about the accelerometer noise in heave)."""
+    case = next(c for c in cases() if c.expect == ("buoyancy",))
+    row = run_case(case, tmp_path, V, duration_s=60.0)
+    assert row["named"][0] == "buoyancy"
+    assert row["param_error"] < 0.15
+    assert row["passed"], row["checks"]
+    assert (tmp_path / f"{case.name.replace(' ', '_').replace('+', '_').replace('.', '_').replace('%', '_')}.tlog").exists() or \
+        any(p.suffix == ".tlog" for p in tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_control_case_gives_no_finding(tmp_path):
+    case = next(c for c in cases() if not c.expect)
+    row = run_case(case, tmp_path, V, duration_s=60.0)
+    assert row["named"] == [] and row["passed"]
+
+
+@pytest.mark.slow
+def test_prove_command_writes_prove_json(tmp_path, capsys):
+    assert main(["prove", "--out", str(tmp_path), "--only", "wall_proximity missing", "--duration", "60", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "wall_proximity missing" in out and "cases pass" in out
+    data = json.loads((tmp_path / "prove.json").read_text())
+    assert len(data["cases"]) == 1 and data["cases"][0]["case"] == "wall_proximity missing"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", cases(), ids=lambda c: c.name)
+def test_every_case(case, tmp_path):
+    """The full proof set at the README's settings (120 s sessions). Failures here are the
+    honest ones the README table lists; the test records the verdict of each check."""
+    row = run_case(case, tmp_path, V, duration_s=120.0)
+    assert set(row["checks"]) >= ({"no_finding"} if not case.expect else
+                                  {"named_first", "windows_overlap", "parameter_within_15pct", "nrmse_drop_40pct"})
+    assert np.isfinite(row["nrmse_before"])
+    assert row["passed"], row["checks"]
