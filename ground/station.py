@@ -168,6 +168,7 @@ class Station:
         self.velocity_ned = (math.nan,) * 3
         self.groundspeed = math.nan
         self.command_u = None
+        self._pwm = None
         self.wrench_demand = (math.nan,) * 6
         self.wrench_achieved = (math.nan,) * 6
         self.packets = 0
@@ -268,10 +269,8 @@ class Station:
     def _servo(self, m, now_s):
         if self.vehicle is None or m.port != 0:
             return
-        from onboard.pwm import pwm_to_command
-
-        pwm = [getattr(m, f"servo{c}_raw", 0) or 0 for c in range(1, 17)]
-        self.command_u = pwm_to_command(self.vehicle, pwm)
+        self._pwm = m  # mapped to jets only when a snapshot asks (keeps ingest cheap)
+        self.command_u = None
 
     def _pressure(self, m, now_s):
         # hydrostatic depth below the surface, p = p_atm + rho g z (ArduSub's default water)
@@ -308,9 +307,14 @@ class Station:
 
     # -- output --------------------------------------------------------------------------------
     def _jets(self) -> Jets | None:
-        if self.command_u is None or self.vehicle is None:
+        if self.vehicle is None or self._pwm is None:
             return None
         from onboard.model import jet_thrust
+        from onboard.pwm import pwm_to_command
+
+        if self.command_u is None:
+            m = self._pwm
+            self.command_u = pwm_to_command(self.vehicle, [getattr(m, f"servo{c}_raw", 0) or 0 for c in range(1, 17)])
 
         k = self.vehicle.n_units
         u = self.command_u
