@@ -179,7 +179,7 @@ class Station:
         self.bad_packets = 0
         self.rtt_s = math.nan
         self._pending: dict = {}  # command id -> wall time sent
-        self._offset_min = math.inf
+        self._offsets: deque = deque()  # (arrival, offset) with increasing offsets: sliding minimum
         self.delay_jitter_s = math.nan
         self._arrivals: deque = deque(maxlen=512)
         self._active: set = set()  # warnings currently raised (to log each once)
@@ -297,10 +297,18 @@ class Station:
         text = m.text.decode("ascii", "replace") if isinstance(m.text, bytes) else str(m.text)
         self._event(now_s, f"vehicle says: {text.rstrip(chr(0))}")
 
-    def _delay(self, now_s: float, vehicle_t: float) -> None:
+    def _delay(self, now_s: float, vehicle_t: float, window_s: float = 10.0) -> None:
+        """Arrival minus vehicle time, above its minimum over the last `window_s` (a window, so
+        the slow drift between the two clocks does not pile up as false delay)."""
         offset = now_s - vehicle_t
-        self._offset_min = min(self._offset_min, offset)
-        self.delay_jitter_s = offset - self._offset_min
+        w = self._offsets
+        while w and (w[-1][1] >= offset or now_s - w[0][0] > window_s):  # monotonic min-queue
+            if w[-1][1] >= offset:
+                w.pop()
+            else:
+                w.popleft()
+        w.append((now_s, offset))
+        self.delay_jitter_s = offset - w[0][1]
 
     def _event(self, now_s: float, text: str) -> None:
         self.events.append((now_s, text))

@@ -377,3 +377,17 @@ def test_serial_57600_at_default_rates_floods_the_radio(tmp_path):
     assert radio.dropped[0] > 0
     st = session.station
     assert st.sources[(1, 1)].lost > 0 or st.bad_packets > 0
+
+
+def test_delay_jitter_is_measured_against_a_sliding_minimum():
+    st = Station()
+    # (arrival wall s, vehicle ms): offsets 100.0, 100.0, 100.3 -> 0.3 s late
+    for now, ms in ((100.0, 0), (100.1, 100), (100.5, 200)):
+        (m,) = _packets([mavlink.MAVLink_attitude_message(ms, 0, 0, 0, 0, 0, 0)])
+        st.update(m, now)
+    assert st.delay_jitter_s == pytest.approx(0.3)
+    # the clocks drift 0.5 s apart, steadily: after the 10 s window it is no longer "late"
+    for k in range(1, 30):
+        (m,) = _packets([mavlink.MAVLink_attitude_message(200 + 1000 * k, 0, 0, 0, 0, 0, 0)])
+        st.update(m, 100.5 + k * 1.0 + 0.5)  # offset 100.8 from here on
+    assert st.delay_jitter_s == pytest.approx(0.0, abs=1e-9)
