@@ -115,3 +115,27 @@ def test_over_udp_signed_ground_is_obeyed_and_unsigned_refused():
 def test_signing_timestamp_units():
     assert signing_timestamp(1_420_070_400.0) == 0
     assert signing_timestamp(1_420_070_401.0) == 100_000
+
+
+def test_onboard_loop_with_a_key_obeys_only_signed_commands():
+    from ground.commands import depth_yaw, message_interval
+    from onboard.loop import LoopConfig, OnboardLoop, VehicleClock
+    from onboard.vehicle import load_vehicle
+
+    link = Link("udpout:127.0.0.1:9")
+    try:
+        loop = OnboardLoop(load_vehicle(), link, VehicleClock(), LoopConfig(signing_key=KEY))
+        loop.handle(_parse(depth_yaw(2.0).pack(mavlink.MAVLink(None, 255, 190))))
+        assert loop.setpoint.depth_m != 2.0  # unsigned: ignored
+        loop.handle(_parse(message_interval("ATTITUDE", 2.0).pack(mavlink.MAVLink(None, 255, 190))))
+        assert loop.rates.rate_hz["ATTITUDE"] == 10.0
+        loop.handle(_signed(depth_yaw(2.0)))
+        assert loop.setpoint.depth_m == 2.0
+        loop.handle(_signed(message_interval("ATTITUDE", 2.0)))
+        assert loop.rates.rate_hz["ATTITUDE"] == 2.0
+        assert (loop.signing.rejected_unsigned, loop.signing.accepted) == (2, 2)
+        # telemetry and sensors need no signature
+        loop.handle(_parse(mavlink.MAVLink_scaled_pressure2_message(10, 1013.25, 0, 2000, 0).pack(mavlink.MAVLink(None, 1, 1))))
+        assert loop.stats.rejected_inputs == 0 and len(loop._queue) == 1
+    finally:
+        link.close()
