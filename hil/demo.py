@@ -194,6 +194,7 @@ def run_closed_loop(
     processes: bool = True,
     start_timeout_s: float = 300.0,
     progress=None,
+    frame_period_s: float | None = None,
 ) -> ClosedLoopResult:
     """Plant + onboard + recorder over loopback UDP in lock-step; returns what happened."""
     use_fork = processes and "fork" in mp.get_all_start_methods()
@@ -229,7 +230,8 @@ def run_closed_loop(
 
     tlog = TlogWriter(tlog_path) if tlog_path is not None else None
     plant = Plant(vehicle, dt_s=0.001, seed=seed, depth_m=depth_m)
-    ep = HilEndpoint(vehicle, ep_link, plant, control_period_s=1.0 / config.control_rate_hz, lockstep=True,
+    frame_s = frame_period_s if frame_period_s is not None else 1.0 / config.control_rate_hz
+    ep = HilEndpoint(vehicle, ep_link, plant, control_period_s=frame_s, lockstep=True,
                      setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=30.0)
     got: dict = {}
     wall0 = time.perf_counter()
@@ -246,11 +248,11 @@ def run_closed_loop(
         wall0 = time.perf_counter()
         if progress:
             progress(f"flying {duration_s:.0f} s of mission in lock-step")
-        n = int(round(duration_s * config.control_rate_hz))
+        n = int(round(duration_s / frame_s))
         try:
             while ep.k < n:
                 ep.step()
-                if progress and ep.k % int(5 * config.control_rate_hz) == 0:
+                if progress and ep.k % int(round(5 / frame_s)) == 0:
                     progress(f"  t = {ep.time_s:5.1f} s")
         except EndpointError as exc:
             stop.set()

@@ -183,13 +183,15 @@ class HilEndpoint:
         while self._next_setpoint < len(self.setpoints) and self.setpoints[self._next_setpoint][0] <= t + 1e-9:
             self._send_as_gcs(self.setpoints[self._next_setpoint][1], t)
             self._next_setpoint += 1
+        # recorded at the frame's time t (a burst received at once; each message carries its own
+        # sample time), so the .tlog's clock never goes back whatever the rates
         for s in samples.pressure:
-            self._send(codec.encode_pressure(s), s.time_s)
+            self._send(codec.encode_pressure(s), t)
         for s in samples.attitude:
-            self._send(codec.encode_attitude(s), s.time_s)
+            self._send(codec.encode_attitude(s), t)
         for s in samples.imu:
             if not any(t0 <= s.time_s < t1 for t0, t1 in self.faults.imu_dropouts_s):
-                self._send(codec.encode_imu(s), s.time_s)
+                self._send(codec.encode_imu(s), t)
         for msg in codec.encode_actuators(self.plant.actuators(self._pwm))[1:]:  # ESC rpm only
             self._send(msg, t)
         if self.tlog is not None and t + 1e-9 >= self._next_mocap_s:
