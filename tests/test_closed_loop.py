@@ -378,3 +378,37 @@ def test_slower_control_than_imu_in_lock_step(tmp_path):
     assert r.onboard["steps"] == 100
     depth = [s.pos_ned_m[2] for s in r.truth]
     assert max(depth) > 0.2
+
+
+def test_real_time_mode_follows_the_wall_clock():
+    """Real time: the plant paces itself on the wall clock (never faster) and applies whatever
+    command has arrived; the onboard loop ticks on its own wall clock."""
+    import threading
+    import time
+
+    from hil.endpoint import HilEndpoint
+    from hil.plant import Plant
+    from onboard.link import Link
+    from onboard.loop import OnboardLoop, WallClock
+
+    plant_link = Link("udpin:127.0.0.1:0")
+    robot_link = Link(f"udpout:127.0.0.1:{plant_link.local_address[1]}")
+    loop = OnboardLoop(V, robot_link, WallClock())
+    done = threading.Event()
+    robot = threading.Thread(target=loop.run, kwargs=dict(stop=done.is_set), daemon=True)
+    robot.start()
+    ep = HilEndpoint(V, plant_link, Plant(V, seed=0), lockstep=False, setpoints=dive_and_hold(0.3))
+    try:
+        ep.start(wait_s=60)
+        t0 = time.monotonic()
+        ep.run(1.5)
+        wall = time.monotonic() - t0
+    finally:
+        done.set()
+        robot.join(5)
+        plant_link.close()
+        robot_link.close()
+    assert wall >= 1.5 - 0.02  # paced, not as fast as possible
+    assert ep.stats.periods == 150
+    assert ep.stats.commands_applied >= 30  # the loop answered (how often depends on the machine)
+    assert loop.armed
