@@ -25,7 +25,7 @@ import queue
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +79,10 @@ class Mission:
                         cur[k] = getattr(leg, k)
                 cur["leg"] = leg
         return cur
+
+
+# The onboard configuration the demo flies (and the mission test checks).
+DEMO_CONFIG = LoopConfig()
 
 
 def reference_mission() -> Mission:
@@ -393,7 +397,10 @@ def configure(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="noise seed of the plant (default 0)")
     parser.add_argument("--allocator", choices=("qp", "baseline"), default="qp",
                         help="qp: OSQP allocation (default); baseline: pseudo-inverse with clipping")
-    parser.add_argument("--no-compensation", action="store_true", help="turn the seed-004 transient compensation off")
+    parser.add_argument("--compensation", choices=("on", "off"), default="on" if DEMO_CONFIG.compensation else "off",
+                        help="seed-004 azimuth-transient compensation (default: %(default)s)")
+    parser.add_argument("--no-compensation", dest="compensation", action="store_const", const="off",
+                        help="the same as --compensation off")
     parser.add_argument("--threads", action="store_true", help="run the parties as threads instead of processes")
 
 
@@ -412,9 +419,10 @@ def run(args) -> int:
         print(f"jetloop demo: cannot create output directory {out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     mission = reference_mission()
-    config = LoopConfig(allocator=args.allocator, compensation=not args.no_compensation)
+    config = replace(DEMO_CONFIG, allocator=args.allocator, compensation=args.compensation == "on")
     say = lambda s: print(s, flush=True)  # noqa: E731
-    say(f"jetloop demo: plant + onboard + recorder over 127.0.0.1, lock-step, vehicle {vehicle.name}, seed {args.seed}")
+    say(f"jetloop demo: plant + onboard + recorder over 127.0.0.1, lock-step, vehicle {vehicle.name}, seed {args.seed}, "
+        f"allocation {config.allocator}, compensation {'on' if config.compensation else 'off'}")
     try:
         result = run_closed_loop(vehicle, mission.setpoints(), mission.duration_s, seed=args.seed, config=config,
                                  out_dir=out, processes=not args.threads, progress=say)

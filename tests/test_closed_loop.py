@@ -87,8 +87,10 @@ def test_garbage_on_the_link_does_not_stop_the_loop():
 def test_reference_mission_tracks_within_bounds():
     """Bounds: depth RMS <= 3 cm, yaw RMS <= 3 deg, surge RMS <= 6 cm/s (no DVL: speed is
     model-estimated), no limit violated. Errors are taken after each leg's settling time."""
+    from hil.demo import DEMO_CONFIG
+
     m = reference_mission()
-    r = run_closed_loop(V, m.setpoints(), m.duration_s, seed=0)
+    r = run_closed_loop(V, m.setpoints(), m.duration_s, seed=0, config=DEMO_CONFIG)
     e = tracking_errors(r.truth, m)
     assert e["depth_rms_m"] <= 0.03
     assert e["yaw_rms_rad"] <= math.radians(3.0)
