@@ -73,7 +73,7 @@ def run(args) -> int:
         return 2
     plant = Plant(vehicle, seed=args.seed, depth_m=args.depth)
     ep = HilEndpoint(vehicle, link, plant, control_period_s=1.0 / rate, lockstep=not args.realtime,
-                     actuators=args.actuators, setpoints=setpoints, tlog=tlog, seed=args.seed)
+                     actuators=args.actuators, setpoints=setpoints, tlog=tlog, seed=args.seed, history=False)
     print(f"jetloop hil: {vehicle.name} on {conn}, {'real time' if args.realtime else 'lock-step'}, "
           f"{rate:g} Hz; waiting for a controller", flush=True)
     code = 0

@@ -80,6 +80,7 @@ class HilEndpoint:
         give_up_s: float = 10.0,
         seed: int = 0,
         on_period=None,
+        history: bool = True,
     ):
         if actuators not in ("hil", "pwm"):
             raise ValueError(f"actuators must be 'hil' or 'pwm', got {actuators!r}")
@@ -98,6 +99,7 @@ class HilEndpoint:
         self.on_period = on_period
         self.k = 0
         self.stats = EndpointStats()
+        self.history = history  # keep truth and commands (off for long runs: they grow)
         self.truth: list = []  # TruthSample at the IMU instants
         self.commands: list = []  # (t_s, command vector applied from t_s)
         self._gcs = mavlink.MAVLink(None, srcSystem=GCS_SYSTEM, srcComponent=GCS_COMPONENT)
@@ -156,7 +158,8 @@ class HilEndpoint:
         """Send everything up to t_k, take the command for t_k, advance the plant to t_k+1."""
         t = self.time_s
         samples = self.plant.advance(t + 1e-9)
-        self.truth.extend(samples.truth)
+        if self.history:
+            self.truth.extend(samples.truth)
         with self.link.batch():  # one datagram per frame
             self._emit(t, samples)
         if self.lockstep:
@@ -265,7 +268,8 @@ class HilEndpoint:
             self.stats.stale_replies += 1
             return
         self.plant.set_command(command)
-        self.commands.append((t, np.asarray(command, dtype=float).copy()))
+        if self.history:
+            self.commands.append((t, np.asarray(command, dtype=float).copy()))
         if self.actuators == "pwm":
             self._pwm = command_to_pwm(self.vehicle, command)
         self._answered_us = max(self._answered_us, stamp_us)

@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
+from itertools import islice
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -49,6 +51,7 @@ IGNORE_YAW, IGNORE_YAW_RATE = 1024, 2048
 # Modes (HEARTBEAT.custom_mode, MAV_CMD_DO_SET_MODE param2): ArduSub's numbers where it has them
 MODES = {"stabilize": 0, "depth_hold": 2, "guided": 4, "manual": 19}
 MODE_NAMES = {v: k for k, v in MODES.items()}
+HISTORY = 360_000  # control steps of statistics kept (one hour at 100 Hz)
 TELEMETRY_STREAMS = ("ATTITUDE", "NAMED_VALUE_FLOAT", "DEBUG_FLOAT_ARRAY")  # at telemetry_rate_hz unless asked
 
 
@@ -206,10 +209,11 @@ class LoopConfig:
 @dataclass
 class LoopStats:
     steps: int = 0
-    step_time_s: list = field(default_factory=list)  # wall time of estimate+control+compensate+allocate
-    step_cpu_s: list = field(default_factory=list)  # the same step's CPU time (this thread)
-    solve_time_s: list = field(default_factory=list)
-    weighted_error: list = field(default_factory=list)
+    # Histories keep the newest `HISTORY` entries, so a robot running for hours does not grow.
+    step_time_s: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # wall time of estimate+control+compensate+allocate
+    step_cpu_s: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # the same step's CPU time (this thread)
+    solve_time_s: deque = field(default_factory=lambda: deque(maxlen=HISTORY))
+    weighted_error: deque = field(default_factory=lambda: deque(maxlen=HISTORY))
     fallbacks: int = 0
     limit_violations: int = 0
     failsafe_entries: int = 0
@@ -217,7 +221,7 @@ class LoopStats:
     rejected_inputs: int = 0  # messages that did not decode (NaN / inf / malformed)
     step_errors: int = 0  # steps where a collaborator raised: the jets got the safe command
     ignored_imu: int = 0  # IMU messages of a lower-ranked source or out of order
-    commands: list = field(default_factory=list)  # (t, command) sent
+    commands: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # (t, command) sent
 
     def summary(self) -> dict:
         st = np.asarray(self.step_time_s) * 1e3
@@ -647,7 +651,7 @@ class OnboardLoop:
         a = self.allocation
         sp = self.setpoint
         st = self.stats
-        recent = np.asarray(st.step_time_s[-100:]) * 1e3
+        recent = np.fromiter(islice(reversed(st.step_time_s), 100), float) * 1e3
         nan = math.nan
         values = {
             "depth": est.depth_m,
