@@ -334,7 +334,7 @@ def run_case(case: Case, out_dir: Path, reference: Vehicle, duration_s: float = 
     rec_path = out_dir / f"{slug}.tlog"
     truth = record_session(truth_v, rec_path, duration_s, seed=case.seed,
                            thrust_fraction=case.thrust_fraction, rig_stiffness=case.rig_stiffness)
-    (out_dir / f"{slug}.nominal.toml").write_text(_vehicle_note(case))
+    (out_dir / f"{slug}.nominal.toml").write_text(vehicle_toml(nominal, _vehicle_note(case)))
     rec = read_recording(rec_path)
     diag = diagnose(rec, nominal, progress=progress)
     rep = diag.report
@@ -379,18 +379,41 @@ def run_case(case: Case, out_dir: Path, reference: Vehicle, duration_s: float = 
     return row
 
 
+def vehicle_toml(v: Vehicle, header: str = "") -> str:
+    """A complete vehicle file for `v` (loads back to an equal vehicle), so every proof
+    recording can be re-diagnosed by hand: jetloop diagnose REC --vehicle NOMINAL.toml."""
+    import dataclasses
+
+    from onboard.vehicle import SECTIONS, _toml_value
+
+    lines = [header.rstrip(), f'name = "{v.name}"', ""] if header else [f'name = "{v.name}"', ""]
+    for sec in SECTIONS:
+        obj = getattr(v, sec)
+        lines.append(f"[{sec}]")
+        lines += [f"{f.name} = {_toml_value(getattr(obj, f.name))}" for f in dataclasses.fields(obj)]
+        lines.append("")
+    for u in v.units:
+        lines += ["[[unit]]", f"position = {_toml_value(u.position)}", f"neutral = {_toml_value(u.neutral)}", ""]
+    for f in dataclasses.fields(v.effects):
+        eff = getattr(v.effects, f.name)
+        lines.append(f"[effects.{f.name}]")
+        lines += [f"{g.name} = {_toml_value(getattr(eff, g.name))}" for g in dataclasses.fields(eff)]
+        lines.append("")
+    return "\n".join(lines)
+
+
 def _vehicle_note(case: Case) -> str:
-    lines = [f"# nominal vehicle of case '{case.name}': the reference asr4 with these keys changed", ""]
-    for k, v in case.nominal_values.items():
-        lines.append(f"# {k} = {v}")
-    lines.append("# the TRUE vehicle (plant) differs by:")
-    for k, v in case.truth_values.items():
-        lines.append(f"# {k} = {v}")
+    lines = [f"# Nominal vehicle of proof case '{case.name}': the reference with these keys changed:"]
+    lines += [f"#   {k} = {v}" for k, v in case.nominal_values.items()] or ["#   (none)"]
+    lines.append("# The TRUE vehicle (the plant that made the recording) differs from the reference by:")
+    lines += [f"#   {k} = {v}" for k, v in case.truth_values.items()]
     if case.thrust_fraction:
-        lines.append(f"# thrust_fraction = {list(case.thrust_fraction)}")
+        lines.append(f"#   unit thrust fractions = {list(case.thrust_fraction)}")
     if case.rig_stiffness:
-        lines.append(f"# tether spring (N/m, NED) = {list(case.rig_stiffness)}")
-    return "\n".join(lines) + "\n"
+        lines.append(f"#   a tether spring (N/m, NED x y z) = {list(case.rig_stiffness)}")
+    if lines[-1].startswith("# The TRUE"):
+        lines.append("#   (nothing: the plant flies the reference vehicle)")
+    return "\n".join(lines)
 
 
 def table(rows: list[dict]) -> str:

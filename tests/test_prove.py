@@ -28,6 +28,18 @@ def test_cases_cover_every_effect_and_parameter_and_controls():
         V.with_values(c.nominal_values)
 
 
+def test_nominal_vehicle_file_loads_back_equal():
+    import dataclasses
+
+    from ground.prove import vehicle_toml
+    from onboard.vehicle import parse_vehicle
+
+    for c in cases()[:8]:
+        nominal = V.with_values(c.nominal_values)
+        back = parse_vehicle(vehicle_toml(nominal, "# note"))
+        assert dataclasses.replace(back, source="") == dataclasses.replace(nominal, source="")
+
+
 def test_session_has_dives_runs_turns_and_a_surfacing():
     sp = session_setpoints(120.0, 0)
     depths = [s[1] for s in sp]

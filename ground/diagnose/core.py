@@ -144,7 +144,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0) -> 
     final_res = ev.residual(final.model) if final is not None else res0
     if excess0 > 2 * Z_GATE * math.sqrt(2.0 * n_h) and explained_now < UNKNOWN_IF_EXPLAINED_BELOW:
         _say(progress, "no known effect explains the residual: fitting a sparse data-driven term")
-        unknown = _unknown_term(ev, traj, vehicle, final, final_res, split)
+        # the sparse term alone against the nominal model, and on top of the known findings
+        alone = _unknown_term(ev, traj, vehicle, None, res0, split)
+        unknown = _unknown_term(ev, traj, vehicle, final, final_res, split) if final is not None else alone
+        if alone is not None and final is not None and alone["delta"] > final.delta_holdout:
+            unknown = dict(alone, first=True)
         if unknown is not None:
             _say(progress, f"unknown term: {unknown['formula']}")
     # --- show: held-out multiple shooting, before and after
@@ -154,10 +158,12 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0) -> 
     res1 = final_res
     findings = [_finding(f, vehicle, split, traj, res0, noise, i == 0, fits) for i, f in enumerate(chosen)]
     if unknown is not None and unknown["delta"] > Z_GATE * math.sqrt(2.0 * n_h):
-        findings.append({"effect": "unknown", "kind": "missing",
-                         "confidence": round(unknown["confidence"], 3), "parameters": {},
-                         "explanation": unknown["explanation"], "formula": unknown["formula"],
-                         "heldout_chi2_drop": round(unknown["delta"], 1)})
+        entry = {"effect": "unknown", "kind": "missing",
+                 "confidence": round(unknown["confidence"], 3), "parameters": {},
+                 "explanation": unknown["explanation"], "formula": unknown["formula"],
+                 "heldout_chi2_drop": round(unknown["delta"], 1)}
+        # ranked by what it explains: first when it explains more than the known effects named
+        findings.insert(0 if unknown.get("first") or not findings else len(findings), entry)
     report = {
         "recording": rec.summary(),
         "mismatch": {

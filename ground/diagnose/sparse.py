@@ -16,7 +16,8 @@ from . import replay
 
 
 def feature_library(traj: replay.Trajectory, vehicle, act: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """(N, F) features and their names: 1, nu, |nu| nu, gravity direction, depth terms, thrust."""
+    """(N, F) features and their names: 1, nu, |nu| nu, gravity direction, position in body axes,
+    depth terms, thrust."""
     nu = traj.nu
     names = ["1"]
     cols = [np.ones(len(nu))]
@@ -28,8 +29,12 @@ def feature_library(traj: replay.Trajectory, vehicle, act: np.ndarray) -> tuple[
         cols.append(np.abs(nu[:, i]) * nu[:, i])
         names.append(f"{s}|{s}|")
     R = replay.rotation_rows(traj.quat)
-    for i, s in enumerate(("gx", "gy", "gz")):  # R^T e3: gravity direction in body axes
+    for i, s in enumerate(("gx", "gy")):  # R^T e3: gravity direction in body axes (gz ~ 1: the constant)
         cols.append(R[:, 2, i])
+        names.append(s)
+    pb = np.einsum("nji,nj->ni", R, traj.pos_ned_m)  # R^T p: a position-dependent force (tether, spring)
+    for i, s in enumerate(("xb", "yb", "zb")):
+        cols.append(pb[:, i])
         names.append(s)
     depth = traj.pos_ned_m[:, 2] - vehicle.environment.surface_depth
     cols.append(depth)
@@ -52,7 +57,8 @@ class SparseTerm:
 
 
 def stlsq(X: np.ndarray, y: np.ndarray, threshold: float = 0.05, max_iter: int = 10, ridge: float = 1e-6):
-    """Sequentially thresholded least squares with columns standardised, per output column."""
+    """Sequentially thresholded least squares with columns standardised, per output column;
+    `ridge` is per sample (the penalty is ridge * N on standardised coefficients)."""
     scale = np.sqrt(np.mean(X ** 2, axis=0))
     scale[scale == 0] = 1.0
     Xs = X / scale
@@ -63,7 +69,7 @@ def stlsq(X: np.ndarray, y: np.ndarray, threshold: float = 0.05, max_iter: int =
         c = np.zeros(X.shape[1])
         for _ in range(max_iter):
             A = Xs[:, keep]
-            sol = np.linalg.solve(A.T @ A + ridge * np.eye(A.shape[1]), A.T @ y[:, j])
+            sol = np.linalg.solve(A.T @ A + ridge * len(A) * np.eye(A.shape[1]), A.T @ y[:, j])
             c = np.zeros(X.shape[1])
             c[keep] = sol
             small = np.abs(c) < threshold * spread
@@ -78,7 +84,7 @@ def stlsq(X: np.ndarray, y: np.ndarray, threshold: float = 0.05, max_iter: int =
 
 def fit_sparse(traj, vehicle, act, force_residual: np.ndarray, idx: np.ndarray, threshold: float = 0.1) -> SparseTerm:
     X, names = feature_library(traj, vehicle, act)
-    coef = stlsq(X[idx], force_residual[idx], threshold)
+    coef = stlsq(X[idx], force_residual[idx], threshold, ridge=1e-2)
     parts = []
     for j, axis in enumerate(replay.AXES):
         terms = [f"{coef[i, j]:+.4g} {names[i]}" if names[i] != "1" else f"{coef[i, j]:+.4g}"
