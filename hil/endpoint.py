@@ -145,7 +145,7 @@ class HilEndpoint:
     def start(self, wait_s: float = 10.0) -> None:
         """Wait until the controller speaks (a udpin link learns its address from it)."""
         deadline = time.monotonic() + wait_s
-        while self.link.endpoint.kind == "udpin" and getattr(self.link._io, "peer", None) is None:
+        while not self.link.has_peer:
             if time.monotonic() > deadline:
                 raise EndpointError(f"no controller spoke on {self.link.connection} within {wait_s:.0f} s")
             m = self.link.recv(0.1)

@@ -203,6 +203,11 @@ class Link:
         return self._io.local_address
 
     @property
+    def has_peer(self) -> bool:
+        """Whether sends can go anywhere: always, except a udpin link nobody has spoken to yet."""
+        return getattr(self._io, "peer", True) is not None
+
+    @property
     def garbage_bytes(self) -> int:
         """Bytes received that are neither in a good packet nor waiting in the parser."""
         pending = len(self.mav.buf) - self.mav.buf_index
