@@ -62,10 +62,12 @@ def udp_pair():
 
 def test_udp_round_trip_and_reply_to_last_speaker(udp_pair):
     server, client = udp_pair
+    assert not server.has_peer and client.has_peer
     server.send(heartbeat())  # nobody has spoken to udpin yet: counted, not raised
     assert server.send_failures == 1
     client.send(heartbeat(custom_mode=7))
     m = server.recv(1.0)
+    assert server.has_peer
     assert m.get_type() == "HEARTBEAT" and m.custom_mode == 7
     assert (m.get_srcSystem(), m.get_srcComponent()) == (255, 190)
     server.send(heartbeat(custom_mode=9))  # goes back to the client's port
