@@ -137,6 +137,9 @@ class SessionTruth:
     time_s: np.ndarray
     depth_m: np.ndarray
     speed_m_s: np.ndarray
+    control_time_s: np.ndarray = None  # at each control step:
+    joint_rate_rad_s: np.ndarray = None  # largest |joint rate| over the step (k units, both joints)
+    speed_change_rev_s: np.ndarray = None  # largest |n - n_cmd| (propeller catching up)
 
 
 def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 0,
@@ -164,6 +167,8 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
     t_ctrl = 1.0 / CONTROL_HZ
     n_ctrl = int(round(duration_s * CONTROL_HZ))
     times, depths, speeds = [], [], []
+    c_times, j_rates, n_gaps = [], [], []
+    lay = model.StateLayout(k)
     for step in range(n_ctrl):
         t = step * t_ctrl
         sp = next(s for s in reversed(sps) if s[0] <= t + 1e-9)
@@ -175,7 +180,11 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
         if step % int(CONTROL_HZ) == 0:
             out.append((t, -1, mav.MAVLink_heartbeat_message(
                 mav.MAV_TYPE_SUBMARINE, mav.MAV_AUTOPILOT_GENERIC, 128, 0, mav.MAV_STATE_ACTIVE, 3).pack(link)))
+        joints0 = plant.state[lay.alpha.start:lay.beta.stop].copy()
         samples = plant.advance(t + t_ctrl - 1e-9)
+        c_times.append(t)
+        j_rates.append(float(np.abs(plant.state[lay.alpha.start:lay.beta.stop] - joints0).max()) / t_ctrl)
+        n_gaps.append(float(np.abs(plant.state[lay.n] - plant.command[:k]).max()))
         for s in samples.imu:
             out.append((s.time_s, 1, mav.MAVLink_highres_imu_message(
                 int(round(s.time_s * 1e6)), *s.accel_frd_m_s2, *s.gyro_frd_rad_s,
@@ -204,7 +213,8 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
         for t, _, pkt in out:
             f.write(int(epoch + round(t * 1e6)).to_bytes(8, "big"))
             f.write(pkt)
-    return SessionTruth(np.array(times), np.array(depths), np.array(speeds))
+    return SessionTruth(np.array(times), np.array(depths), np.array(speeds), np.array(c_times),
+                        np.array(j_rates), np.array(n_gaps))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -311,14 +321,19 @@ def _param_error(case: Case, findings: list) -> float | None:
     return max(errs)
 
 
-def _acts_mask(case: Case, truth: SessionTruth, vehicle: Vehicle) -> np.ndarray:
+def _acts_mask(case: Case, truth: SessionTruth, vehicle: Vehicle):
+    """(times, mask): where the case's effect acts, from the plant's truth."""
     e = vehicle.environment
     R = vehicle.body.radius
     if case.acts == "surface":
-        return truth.depth_m < 1.5 * R
+        return truth.time_s, truth.depth_m < 1.5 * R
     if case.acts == "floor":
-        return (e.floor_depth - e.surface_depth - truth.depth_m) < 2.0 * R
-    return np.ones(len(truth.time_s), bool)
+        return truth.time_s, (e.floor_depth - e.surface_depth - truth.depth_m) < 2.0 * R
+    if case.acts == "slews":
+        return truth.control_time_s, truth.joint_rate_rad_s > 1.0
+    if case.acts == "thrust changes":
+        return truth.control_time_s, truth.speed_change_rev_s > 2.0
+    return truth.time_s, np.ones(len(truth.time_s), bool)
 
 
 def run_case(case: Case, out_dir: Path, reference: Vehicle, duration_s: float = 120.0, progress=None) -> dict:
@@ -358,8 +373,8 @@ def run_case(case: Case, out_dir: Path, reference: Vehicle, duration_s: float = 
         row["param_error"] = None
     else:
         perr = _param_error(case, findings)
-        acts = _acts_mask(case, truth, reference)
-        t_act = truth.time_s[acts]
+        t_all, acts = _acts_mask(case, truth, reference)
+        t_act = t_all[acts]
         overlap = any(((t_act >= w["t0"]) & (t_act <= w["t1"])).any() for w in rep["mismatch"]["windows"])
         first_ok = bool(findings) and (findings[0]["effect"] == case.expect[0]
                                         or (len(case.expect) > 1 and findings[0]["effect"] in case.expect))

@@ -304,6 +304,8 @@ def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: Co
         sol = least_squares(lambda z: fun(to_theta(z)), z0, bounds=(zlo, zhi), diff_step=1e-2,
                             max_nfev=max_iter + (2 if cand.n_params <= 2 else 0), method="trf")
         theta = np.clip(to_theta(sol.x), lo, hi)
+    else:  # an effect with no parameter of its own (thrust_inflow, surface_proximity): just on
+        theta = theta0
     cm = cand.apply(theta, base)
     res = ev.residual(cm)
     c0_tr, _ = chi2(res0, split, tr)
