@@ -215,3 +215,16 @@ def test_real_ardusub_dataflash_log_runs_end_to_end(capsys):
     out = capsys.readouterr().out
     assert code == 0
     assert "held-out NRMSE total" in out
+
+
+def test_simulated_features_equal_the_library(quiet_session):
+    """The compiled feature row used in simulation = `sparse.feature_library` (cross-form)."""
+    traj = replay.reconstruct(quiet_session, V)
+    p = model.pack_params(V)
+    act = replay.actuator_run(traj, p, 4)
+    X, names = sparse.feature_library(traj, V, act)
+    out = np.zeros(len(names))
+    for i in (0, 500, 2500):
+        x = np.concatenate([traj.pos_ned_m[i], traj.quat[i], traj.nu[i], act[i]])
+        replay._sparse_features(x, p, 4, out)
+        assert out == pytest.approx(X[i], rel=1e-9, abs=1e-12)

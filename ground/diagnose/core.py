@@ -154,7 +154,12 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0) -> 
     # --- show: held-out multiple shooting, before and after
     _say(progress, "held-out multiple shooting, before and after")
     final_model = final.model if final is not None else ev.base
-    shots = _shoot_holdout(ev, traj, split, ev.base, final_model)
+    extra = None
+    if unknown is not None and unknown["delta"] > Z_GATE * math.sqrt(2.0 * n_h):
+        extra = unknown["coefficients"]  # the data-driven term joins the corrected simulation
+        if unknown.get("first"):
+            final_model = ev.base
+    shots = _shoot_holdout(ev, traj, split, ev.base, final_model, extra, replay.nominal_mass_diag(vehicle))
     res1 = final_res
     findings = [_finding(f, vehicle, split, traj, res0, noise, i == 0, fits) for i, f in enumerate(chosen)]
     if unknown is not None and unknown["delta"] > Z_GATE * math.sqrt(2.0 * n_h):
@@ -271,11 +276,13 @@ def _unknown_term(ev, traj, vehicle, final, base_res, split):
     n_h = len(split.holdout) * float(split.neff[split.active].sum())
     frac = delta / max(c_before - n_h, 1e-9)
     return {"formula": term.formula, "delta": float(delta), "confidence": float(min(max(frac, 0.0), 1.0)),
+            "coefficients": term.coefficients_,
             "explanation": f"no known effect explains the residual; a sparse term {term.formula} "
                            f"explains {100 * min(max(frac, 0), 1):.0f} % of it on held-out data"}
 
 
-def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: CorrectedModel) -> dict:
+def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: CorrectedModel,
+                   extra=None, mass_diag=None) -> dict:
     """Held-out NRMSE per signal (and total) of multiple-shooting windows, before and after."""
     n = int(round(SHOOT_S / traj.dt_s))
     mask = split.holdout_mask
@@ -294,7 +301,9 @@ def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: Co
         tr = ev.trajectory(cm.correction)
         p = model.pack_params(cm.vehicle)
         act = ev.actuators(tr, p, cm)
-        pred = replay.shoot(tr, act, p, starts, n, substeps=2, command=ev.command(tr, cm)) if len(starts) else np.zeros((0, n, 10))
+        ext = extra if label == "after" else None
+        pred = (replay.shoot(tr, act, p, starts, n, substeps=2, command=ev.command(tr, cm), extra_force=ext,
+                             mass_diag=mass_diag) if len(starts) else np.zeros((0, n, 10)))
         pred, meas = replay.predicted_vs_measured(traj, pred, starts, n, cm.vehicle, cm.correction)
         out[label] = pred
         out["meas"] = meas

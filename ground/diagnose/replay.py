@@ -489,7 +489,39 @@ def acceleration_residual(traj: Trajectory, act: np.ndarray, p: np.ndarray, acc=
 
 
 @njit(cache=True)
-def _shoot(pos, quat, nu, act, command, p, starts, length, substeps, dt, out):
+def _derivative_ext(x, u, p, ext, mdiag, feat, xdot):
+    """The model's x' plus an extra force F = features(x) @ ext acting through diag(M)."""
+    model.derivative(x, u, p, xdot)
+    if ext.shape[0] > 0:
+        from_sparse_features(x, p, feat)
+        for j in range(6):
+            f = 0.0
+            for i in range(ext.shape[0]):
+                f += feat[i] * ext[i, j]
+            xdot[7 + j] += f / mdiag[j]
+
+
+@njit(cache=True)
+def from_sparse_features(x, p, feat):
+    k = (x.shape[0] - 13) // (3 + model.N_TF_STATES)
+    _sparse_features(x, p, k, feat)
+
+
+@njit(cache=True)
+def _rk4_ext(x, u, p, h, ext, mdiag, feat):
+    n = x.shape[0]
+    k1, k2, k3, k4 = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    _derivative_ext(x, u, p, ext, mdiag, feat, k1)
+    _derivative_ext(x + 0.5 * h * k1, u, p, ext, mdiag, feat, k2)
+    _derivative_ext(x + 0.5 * h * k2, u, p, ext, mdiag, feat, k3)
+    _derivative_ext(x + h * k3, u, p, ext, mdiag, feat, k4)
+    out = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    model.project(out, u, p)
+    return out
+
+
+@njit(cache=True)
+def _shoot(pos, quat, nu, act, command, p, starts, length, substeps, dt, out, ext, mdiag):
     """For each window start s: x(t_s) from the reconstruction, RK4 forward `length` grid steps.
 
     out[w, j] = [gyro(3), specific force(3), z, roll, pitch, yaw] at grid index s + j.
@@ -504,9 +536,10 @@ def _shoot(pos, quat, nu, act, command, p, starts, length, substeps, dt, out):
         x[3:7] = quat[s]
         x[7:13] = nu[s]
         x[13:] = act[s]
+        feat = np.zeros(max(ext.shape[0], 1))
         for j in range(length):
             u = command[s + j]
-            model.derivative(x, u, p, xdot)
+            _derivative_ext(x, u, p, ext, mdiag, feat, xdot)
             f = model.specific_force(x, xdot, p)
             r, pi, y = model.quat_to_euler(x[3:7])
             out[w, j, 0:3] = x[10:13]
@@ -517,17 +550,23 @@ def _shoot(pos, quat, nu, act, command, p, starts, length, substeps, dt, out):
             out[w, j, 9] = y
             if j + 1 < length:
                 for _ in range(substeps):
-                    x = model.rk4_step(x, u, p, h)
+                    x = model.rk4_step(x, u, p, h) if ext.shape[0] == 0 else _rk4_ext(x, u, p, h, ext, mdiag, feat)
 
 
 def shoot(traj: Trajectory, act: np.ndarray, p: np.ndarray, starts, length: int, substeps: int = 1,
-          command=None) -> np.ndarray:
-    """Predicted signals (W, length, 10) of windows re-initialised from the measurements."""
+          command=None, extra_force=None, mass_diag=None) -> np.ndarray:
+    """Predicted signals (W, length, 10) of windows re-initialised from the measurements.
+
+    `extra_force` (F, 6): coefficients of a data-driven force on `sparse.feature_library`'s
+    features (a fitted `unknown` term), acting through diag(M) = `mass_diag`.
+    """
     starts = np.asarray(starts, np.int64)
     out = np.zeros((len(starts), length, len(SIGNALS)))
     command = traj.command if command is None else np.ascontiguousarray(command)
+    ext = np.zeros((0, 6)) if extra_force is None else np.ascontiguousarray(extra_force, dtype=float)
+    mdiag = np.ones(6) if mass_diag is None else np.asarray(mass_diag, float)
     _shoot(traj.pos_ned_m, traj.quat, traj.nu, act, command, p, starts, length, substeps,
-           traj.dt_s, out)
+           traj.dt_s, out, ext, mdiag)
     return out
 
 
@@ -555,3 +594,21 @@ def predicted_vs_measured(traj: Trajectory, pred: np.ndarray, starts, length: in
     pred[:, :, 9] -= pred[:, :1, 9]
     meas[:, :, 9] -= meas[:, :1, 9]
     return pred, meas
+
+
+@njit(cache=True)
+def _sparse_features(x, p, k, out):
+    """One row of `sparse.feature_library` (same order) from a full model state x."""
+    out[0] = 1.0
+    for i in range(6):
+        out[1 + i] = x[7 + i]
+        out[7 + i] = abs(x[7 + i]) * x[7 + i]
+    R = model.rotation(x[3:7])
+    out[13] = R[2, 0]
+    out[14] = R[2, 1]
+    for i in range(3):
+        out[15 + i] = R[0, i] * x[0] + R[1, i] * x[1] + R[2, i] * x[2]
+    out[18] = x[2] - p[model.P_SURF]
+    out[19] = 1.0 / max(p[model.P_FLOOR] - x[2], 0.05)
+    for i in range(k):
+        out[20 + i] = (x[13 + i] / p[model.P_NMAX]) ** 2

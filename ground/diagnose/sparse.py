@@ -98,3 +98,4 @@ def fit_sparse(traj, vehicle, act, force_residual: np.ndarray, idx: np.ndarray, 
 def sparse_force(term: SparseTerm, traj, vehicle, act) -> np.ndarray:
     X, _ = feature_library(traj, vehicle, act)
     return X @ term.coefficients_
+
