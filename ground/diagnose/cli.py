@@ -65,7 +65,8 @@ def summary_text(rep: dict) -> str:
     for i, f in enumerate(rep["findings"]):
         lines.append(f"{i + 1}. {f['effect']} ({f['kind']}, confidence {f['confidence']:.2f}): {f['explanation']}")
     h = rep["fit"]["holdout"]
-    lines.append(f"held-out NRMSE total: {h['before']['total']:.3f} -> {h['after']['total']:.3f}")
+    fmt = lambda v: f"{v:.3f}" if isinstance(v, (int, float)) and v == v else "n/a"  # noqa: E731
+    lines.append(f"held-out NRMSE total: {fmt(h['before']['total'])} -> {fmt(h['after']['total'])}")
     if rep["mismatch"]["windows"]:
         lines.append(f"{len(rep['mismatch']['windows'])} window(s) above the noise floor, e.g. "
                      + "; ".join(f"{w['t0']:.1f}-{w['t1']:.1f} s {'/'.join(w['axes'])}"

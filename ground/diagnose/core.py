@@ -44,7 +44,7 @@ PHRASES = {
     "quadratic_damping": "follows the velocity squared",
     "buoyancy": "is a steady vertical force",
     "restoring_moment": "follows roll and pitch (righting arm)",
-    "imu_bias": "is a steady offset of the IMU against attitude and motion capture",
+    "imu_bias": "is a steady offset of the IMU against the attitude (and motion capture) and the dynamics",
     "sensor_delay": "lags the commands by a constant time",
     "thruster_fault": "follows one jet's thrust",
     "unknown": "has a shape no known effect gives",

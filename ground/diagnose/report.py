@@ -21,7 +21,19 @@ from .candidates import CHANNELS
 
 
 def write_json(report: dict, path) -> None:
-    Path(path).write_text(json.dumps(report, indent=2, allow_nan=False, default=_jsonable) + "\n")
+    """Strict JSON: a value that could not be computed (NaN, e.g. a signal with no spread or no
+    held-out window) is written as null."""
+    Path(path).write_text(json.dumps(_finite(report), indent=2, allow_nan=False, default=_jsonable) + "\n")
+
+
+def _finite(o):
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    if isinstance(o, (float, np.floating)) and not np.isfinite(o):
+        return None
+    return o
 
 
 def _jsonable(o):
