@@ -1,9 +1,10 @@
 """The plant's MAVLink endpoint: plays the autopilot's sensor side for an onboard controller.
 
 Each control period the endpoint advances the plant, sends what an ArduSub autopilot would
-(HEARTBEAT at 1 Hz; SCALED_PRESSURE2, ATTITUDE, HIGHRES_IMU at their sensor rates; ESC
-telemetry every period) and then SYSTEM_TIME, whose time_boot_ms marks "everything up to this
-instant has been sent". It applies the actuator commands it receives: HIL_ACTUATOR_CONTROLS
+(HEARTBEAT at 1 Hz; SCALED_PRESSURE2, ATTITUDE, HIGHRES_IMU at their sensor rates; every period
+SERVO_OUTPUT_RAW of the command in force and ESC telemetry of the propellers) and then
+SYSTEM_TIME, whose time_boot_ms marks "everything up to this instant has been sent". So the
+recording holds, from the vehicle (system 1, component 1), every stream spec/recording.md needs. It applies the actuator commands it receives: HIL_ACTUATOR_CONTROLS
 (normalised: jets 0..1, joints -1..1, onboard.pwm) or, with `actuators="pwm"`, the PWM of
 SERVO_OUTPUT_RAW through the vehicle's [pwm] maps.
 
@@ -23,7 +24,7 @@ plus the pool's motion-capture truth (ATT_POS_MOCAP) at the attitude rate, never
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -109,7 +110,7 @@ class HilEndpoint:
         self._mocap_period_s = 1.0 / vehicle.sensors.attitude_rate
         self._next_mocap_s = 0.0
         self._answered_us = -1
-        self._pwm = command_to_pwm(vehicle, plant.command)
+        self._applied_at_s = 0.0  # vehicle time the command in force was applied
         self._wall0 = None
 
     # -- time ----------------------------------------------------------------------------------
@@ -150,7 +151,7 @@ class HilEndpoint:
                 raise EndpointError(f"no controller spoke on {self.link.connection} within {wait_s:.0f} s")
             m = self.link.recv(0.1)
             if m is not None:
-                self._handle(m, self.time_s)
+                self._handle(m, self.time_s, record=False)  # the handshake is not the flight
         self._wall0 = time.monotonic()
 
     # -- one control period ----------------------------------------------------------------------
@@ -195,7 +196,12 @@ class HilEndpoint:
         for s in samples.imu:
             if not any(t0 <= s.time_s < t1 for t0, t1 in self.faults.imu_dropouts_s):
                 self._send(codec.encode_imu(s), t)
-        for msg in codec.encode_actuators(self.plant.actuators(self._pwm))[1:]:  # ESC rpm only
+        # what the autopilot outputs: SERVO_OUTPUT_RAW of the command in force, stamped with the
+        # time it took effect (the previous frame's answer), and the propellers' rpm now
+        act = self.plant.actuators(command_to_pwm(self.vehicle, self.plant.command))
+        if self.stats.commands_applied:  # nothing to report before the first command
+            self._send(codec.encode_actuators(replace(act, time_s=self._applied_at_s))[0], t)
+        for msg in codec.encode_actuators(act)[1:]:
             self._send(msg, t)
         if self.tlog is not None and t + 1e-9 >= self._next_mocap_s:
             self._next_mocap_s += self._mocap_period_s
@@ -239,10 +245,11 @@ class HilEndpoint:
         if self.stats.commands_applied == before:
             self.stats.commands_late += 1
 
-    def _handle(self, m, t: float) -> None:
+    def _handle(self, m, t: float, record: bool = True) -> None:
         name = m.get_type()
         self.stats.received[name] = self.stats.received.get(name, 0) + 1
-        self._record(bytes(m.get_msgbuf()), t, name)
+        if record:
+            self._record(bytes(m.get_msgbuf()), t, name)
         if name == "HIL_ACTUATOR_CONTROLS" and self.actuators == "hil":
             stamp = int(m.time_usec)
             controls = np.asarray(m.controls[: 3 * self.vehicle.n_units], dtype=float)
@@ -254,8 +261,6 @@ class HilEndpoint:
             pwm = [getattr(m, f"servo{i}_raw", 0) or 0 for i in range(1, 17)]
             if self.actuators == "pwm":
                 self._apply(pwm_to_command(self.vehicle, pwm), self._unwrap(int(m.time_usec), t), t)
-            else:
-                self._pwm = np.asarray(pwm, dtype=int)  # what the controller says it commands
 
     def _unwrap(self, stamp32: int, t: float) -> int:
         now = codec.time_usec(t)
@@ -268,9 +273,8 @@ class HilEndpoint:
             self.stats.stale_replies += 1
             return
         self.plant.set_command(command)
+        self._applied_at_s = t
         if self.history:
             self.commands.append((t, np.asarray(command, dtype=float).copy()))
-        if self.actuators == "pwm":
-            self._pwm = command_to_pwm(self.vehicle, command)
         self._answered_us = max(self._answered_us, stamp_us)
         self.stats.commands_applied += 1

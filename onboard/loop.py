@@ -327,10 +327,9 @@ class OnboardLoop:
         """Say hello on every link (a udpin peer learns our address from it)."""
         if not self._started:
             self._started = True
-            hb = self._heartbeat()
-            self.link.send(hb)
+            self.link.send(self._heartbeat(companion=self.ground is not None))
             if self.ground is not None:
-                self.ground.send(hb)
+                self.ground.send(self._heartbeat())
 
     def run(self, duration_s: float | None = None, stop=None, idle_exit_s: float | None = None) -> str:
         """Poll until `stop()` is true, the clock reaches `duration_s` (clock time; the last tick
@@ -620,10 +619,16 @@ class OnboardLoop:
             with self.link.batch():
                 self._send_outputs(t, self.command)
 
-    def _heartbeat(self):
+    def _heartbeat(self, companion: bool = False):
+        """HEARTBEAT as MAV_TYPE_SUBMARINE for the ground. `companion`: towards an autopilot while
+        a separate ground link exists, the loop is its companion computer (MAV_TYPE_ONBOARD_CONTROLLER,
+        MAV_AUTOPILOT_INVALID), so a recording on that side names the autopilot as the vehicle."""
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
         status = (mavlink.MAV_STATE_CRITICAL if self.failsafe_active
                   else mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY)
+        if companion:
+            return mavlink.MAVLink_heartbeat_message(
+                mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, base, self.mode, status, 3)
         return mavlink.MAVLink_heartbeat_message(
             mavlink.MAV_TYPE_SUBMARINE, mavlink.MAV_AUTOPILOT_GENERIC, base, self.mode, status, 3
         )
@@ -632,10 +637,9 @@ class OnboardLoop:
         out = self.ground if self.ground is not None else self.link
         if t + 1e-9 >= self._next_heartbeat:
             self._next_heartbeat = t + 1.0
-            hb = self._heartbeat()
-            out.send(hb)
+            out.send(self._heartbeat())
             if out is not self.link:
-                self.link.send(hb)
+                self.link.send(self._heartbeat(companion=True))
             out.send(self._sys_status(step_s))
             ms = codec.time_boot_ms(max(t, 0.0))
             for name, value in est.health.as_dict().items():  # gating / NaN rejections per stream
