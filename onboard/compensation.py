@@ -34,6 +34,11 @@ from .allocation import Allocation, JetGeometry
 from .vehicle import Vehicle
 
 ROWS = model.TRANSIENT_ROWS  # ("f1x", "f1y", "m1z", "f2x", "f2z")
+# Share of each row (F1x, F1y, M1z, F2x, F2z) taken out of the demand (see allocate_compensated):
+# the axial losses in full, the lateral forces half, the reaction moment not at all.
+COMPENSATED_ROWS = (1.0, 0.5, 0.0, 1.0, 0.5)
+# Wrench axes [X, Y, Z, K, M, N] on which the lateral rows are compensated: not yaw.
+LATERAL_AXES = (1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
 
 
 def discretise_row(row: str, coeffs, dt_s: float, method: str = "zoh"):
@@ -116,6 +121,31 @@ def _predict(Ad, Bd, Cd, z0, ra, rb, T, gain, a_mid, b_mid, e1, pos):
     return wrench, force, mz, y, z1
 
 
+@njit(cache=True)
+def _rows_wrench(y, T, gain, weights, a, b, e1, pos):
+    """Spec-4.1 transient wrench of given row outputs y (k x 5), each row scaled by weights[r].
+
+    Same formula as `_predict` (force = (max(T - g (w0 y1x + w3 y2x), 0) - T) d + g w1 y1y e_alpha
+    + g w4 y2z e_beta, moment r x force - g w2 y1z about body z), at the joint angles a, b.
+    """
+    k = y.shape[0]
+    wrench = np.zeros(6)
+    for i in range(k):
+        Ti = max(T[i], 0.0)
+        g = gain * Ti
+        F = model.jet_frame(a[i], b[i], e1[i, 0], e1[i, 1])
+        dax = max(Ti - g * (weights[0] * y[i, 0] + weights[3] * y[i, 3]), 0.0) - Ti
+        f = np.empty(3)
+        for c in range(3):
+            f[c] = dax * F[0, c] + g * weights[1] * y[i, 1] * F[1, c] + g * weights[4] * y[i, 4] * F[2, c]
+            wrench[c] += f[c]
+        m0, m1, m2 = model.cross(pos[i, 0], pos[i, 1], pos[i, 2], f[0], f[1], f[2])
+        wrench[3] += m0
+        wrench[4] += m1
+        wrench[5] += m2 - g * weights[2] * y[i, 2]
+    return wrench
+
+
 @dataclass(frozen=True)
 class TransientPrediction:
     """Predicted transient over one control step (step means), per unit and summed.
@@ -144,7 +174,12 @@ class TransientCompensator:
     With `azimuth_transient` or `servo_lag` off the prediction is zero, as in the spec.
     """
 
-    def __init__(self, v: Vehicle, dt_s: float, alpha_rad=None, beta_rad=None):
+    def __init__(self, v: Vehicle, dt_s: float, alpha_rad=None, beta_rad=None, row_weights=COMPENSATED_ROWS):
+        w = np.asarray(row_weights, dtype=float).reshape(-1) if np.ndim(row_weights) else np.array([np.nan])
+        if w.shape != (len(ROWS),) or not np.all(np.isfinite(w)) or np.any(w < 0) or np.any(w > 1):
+            raise ValueError(f"row_weights: expected {len(ROWS)} weights in [0, 1] for the rows {ROWS}, "
+                             f"got {row_weights!r}")
+        self.row_weights = w
         if not (isinstance(dt_s, (int, float)) and np.isfinite(dt_s) and dt_s > 0):
             raise ValueError(f"dt_s: expected the control period in seconds (> 0), got {dt_s!r}")
         self.vehicle = v
@@ -164,6 +199,7 @@ class TransientCompensator:
         self.reset(alpha_rad, beta_rad)
         z = np.zeros(self.k)
         self.predict(z, z, z)  # loads the compiled kernels now rather than in the first step
+        self.rows_wrench(np.zeros((self.k, len(ROWS))), z)
 
     def reset(self, alpha_rad=None, beta_rad=None) -> None:
         """Zero the filters (spec 6: transient states start at zero) and set the joint estimates."""
@@ -203,6 +239,32 @@ class TransientCompensator:
             next_beta_rad=np.asarray(b1, float),
         )
 
+    def free_rows(self) -> np.ndarray:
+        """Step-mean row outputs (k x 5) over the coming step with the joints held: the free response.
+
+        ZOH and strictly proper rows (Dd = 0): y over the step is (C z0 + C Ad z0) / 2 plus a forced
+        part (C Bd / 2) u of the step's own rate u. C Bd / 2 is 0.017..0.040 here (rows at 10 ms),
+        so at the 5 rad/s rate limit the forced part of a row is under 0.3 % of T: what acts
+        during the coming step is set by the joint motion already committed.
+        """
+        if not self.active:
+            return np.zeros((self.k, len(ROWS)))
+        z0 = self.state
+        y0 = np.einsum("rj,irj->ir", self.Cd, z0)
+        y1 = np.einsum("rj,rjm,irm->ir", self.Cd, self.Ad, z0)
+        return 0.5 * (y0 + y1)
+
+    def rows_wrench(self, rows, thrust_n, alpha_rad=None, beta_rad=None, weights=None) -> np.ndarray:
+        """Spec-4.1 transient wrench of row outputs `rows` (k x 5) at thrust T and joint angles
+        (default: the current estimates), each row scaled by `weights` (default: this compensator's
+        `row_weights`)."""
+        a = self.alpha if alpha_rad is None else np.asarray(alpha_rad, float)
+        b = self.beta if beta_rad is None else np.asarray(beta_rad, float)
+        w = self.row_weights if weights is None else np.asarray(weights, float)
+        return _rows_wrench(np.ascontiguousarray(rows, dtype=np.float64), np.array(thrust_n, dtype=np.float64),
+                            self.gain, np.array(w, dtype=np.float64), np.array(a, dtype=np.float64),
+                            np.array(b, dtype=np.float64), self.geo.e1, self.geo.position)
+
     def commit(self, prediction: TransientPrediction) -> None:
         """Advance to the end of the step the prediction was made for."""
         self.state = np.array(prediction.next_state)
@@ -217,37 +279,97 @@ def compensate(wrench_demand, prediction: TransientPrediction) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CompensatedAllocation:
-    """An allocation made against demand - predicted transient, and that prediction."""
+    """An allocation made against demand - c (c: the compensated part of the predicted transient),
+    and the full predicted transient of that plan."""
 
     allocation: Allocation
     prediction: TransientPrediction
     wrench_demand: np.ndarray
     wrench_total: np.ndarray  # achieved by the jets + predicted transient
-    iterations: int
+    iterations: int  # re-plans made (step 2 of allocate_compensated)
+    correction_n: np.ndarray | None = None  # the compensated part c taken out of the demand
 
 
 def allocate_compensated(allocator, compensator: TransientCompensator, wrench_demand, nu_r=None,
                          iterations: int = 2, commit: bool = True) -> CompensatedAllocation:
-    """Allocate so that achieved + transient = demand (fixed point over the planned joint motion).
+    """Allocate demand - c, c the compensated part of the transient of the coming step.
 
-    The transient depends on the joint motion the allocation plans, and the allocation on the
-    corrected demand, so: plan, predict that plan's transient, re-plan against demand - prediction,
-    `iterations` times; then predict for the final plan and (with `commit`) advance both.
+    1. c from the coming step's free response (`free_rows`: what the joint motion already
+       committed leaves in the filters; with ZOH the rows' Dd is 0, so no algebraic loop) at the
+       last plan's thrust and the current joint angles (`_correction`); plan demand - c.
+    2. `iterations` times (any integer >= 0; 0 = step 1 only): c again from the plan's own
+       thrust and joint motion (free + forced part, `predict`); re-plan demand - c; stop once c
+       moves by under 1e-6 N. Through the plan c changes only with T (axial loss fraction capped
+       at LOSS_CAP = 0.2, lateral rows g F ~ 0.0126 T per unit of row output) and with the forced
+       part (C Bd / 2 <= 0.041, so under 0.3 % of T at the rate limit): a contraction, not the
+       re-plan against the plan's own full transient that chattered at the rate limit.
+    3. The full prediction (every row, `predict`) of the final plan is returned as `prediction`
+       and, with `commit`, the allocator and the compensator advance.
+
+    Not every row is cancelled (`COMPENSATED_ROWS`, `LATERAL_AXES`). Cancelling a transient that
+    needs the azimuths to turn excites the transient again through the same turn: for the yaw
+    moment the loop gain is g K_M1z / (r cos beta), about 8 / cos(beta) near M1z's 29 rad/s mode,
+    and F1y's 49 rad/s resonance does the same on the lateral force. Measured open loop (demand
+    [0, 0, 2, 0, 0, 0] N then [0.5, 0, 2, 0, 0, 0.1]): cancelling M1z or F1y/F2z in full, or all
+    rows at 0.3, ends in rate-limit chatter even from the free response alone; the axial losses
+    in full (made up by thrust, no turning needed) plus half the lateral forces without their yaw
+    moment settle. The rest is left to the controller as a disturbance.
     """
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)):
+        raise ValueError(f"iterations: expected an integer >= 0 (re-plans per step), got {iterations!r}")
+    n_iter = max(int(iterations), 0)
     tau = np.asarray(wrench_demand, float)
-    alloc = allocator.allocate(tau, nu_r=nu_r, commit=False)
-    for _ in range(max(int(iterations), 0)):
-        pred = compensator.predict(alloc.alpha_rad, alloc.beta_rad, alloc.thrust_n)
-        alloc = allocator.allocate(compensate(tau, pred), nu_r=nu_r, commit=False)
+    prev = getattr(allocator, "previous", None)
+    thrust_ref = np.zeros(compensator.k) if prev is None else np.asarray(prev.thrust_n, float)
+    corr = _correction(compensator, compensator.free_rows(), thrust_ref, compensator.alpha, compensator.beta)
+    alloc = allocator.allocate(tau - corr, nu_r=nu_r, commit=False)
     pred = compensator.predict(alloc.alpha_rad, alloc.beta_rad, alloc.thrust_n)
+    done = 0
+    for _ in range(n_iter):
+        a_mid = 0.5 * (compensator.alpha + pred.next_alpha_rad)
+        b_mid = 0.5 * (compensator.beta + pred.next_beta_rad)
+        new = _correction(compensator, pred.rows, alloc.thrust_n, a_mid, b_mid)
+        if not np.all(np.isfinite(new)) or np.max(np.abs(new - corr)) < 1e-6:
+            break
+        corr = new
+        alloc = allocator.allocate(tau - corr, nu_r=nu_r, commit=False)
+        pred = compensator.predict(alloc.alpha_rad, alloc.beta_rad, alloc.thrust_n)
+        done += 1
     if commit:
         allocator.commit(alloc)
         compensator.commit(pred)
-    return CompensatedAllocation(alloc, pred, tau, np.asarray(alloc.wrench_achieved) + pred.wrench_n, int(iterations))
+    return CompensatedAllocation(alloc, pred, tau, np.asarray(alloc.wrench_achieved) + pred.wrench_n, done,
+                                 corr)
+
+
+LOSS_CAP = 0.2  # at most this fraction of a unit's thrust is made up for (keeps step 2 a contraction)
+
+
+def _correction(comp: TransientCompensator, rows, thrust_n, alpha_rad, beta_rad) -> np.ndarray:
+    """The compensated part of the transient of row outputs `rows` (k x 5) at thrust T, angles a, b.
+
+    axial: rows F1x, F2x at weights w0, w3 with the loss fraction gain (w0 F1x + w3 F2x) capped
+    at LOSS_CAP; lateral: rows F1y, M1z, F2z at weights w1, w2, w4, on the axes of LATERAL_AXES
+    only (not yaw). Both as spec 4.1 wrenches (`rows_wrench`).
+    """
+    w = comp.row_weights
+    rows = np.array(rows, dtype=np.float64)
+    ax_rows = rows.copy()
+    if comp.gain > 0.0:
+        loss = comp.gain * (w[0] * rows[:, 0] + w[3] * rows[:, 3])
+        scale = np.where(loss > LOSS_CAP, LOSS_CAP / np.where(loss > 0, loss, 1.0), 1.0)
+        ax_rows[:, 0] *= scale
+        ax_rows[:, 3] *= scale
+    axial = comp.rows_wrench(ax_rows, thrust_n, alpha_rad, beta_rad, weights=(w[0], 0.0, 0.0, w[3], 0.0))
+    lateral = comp.rows_wrench(rows, thrust_n, alpha_rad, beta_rad, weights=(0.0, w[1], w[2], 0.0, w[4]))
+    return axial + np.asarray(LATERAL_AXES) * lateral
 
 
 __all__ = [
     "ROWS",
+    "COMPENSATED_ROWS",
+    "LOSS_CAP",
+    "LATERAL_AXES",
     "discretise_row",
     "servo_motion",
     "TransientPrediction",
