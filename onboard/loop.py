@@ -539,11 +539,6 @@ class OnboardLoop:
                 np.asarray(self.allocation.wrench_achieved) + self.prediction.wrench_n)
         self.demand = self.controller.step(est, self.setpoint, self.period_s, achieved=achieved).as_array()
         if self.compensator is not None:
-            # Measured in integration (see tests/test_closed_loop.py, compensation test): with the
-            # allocate_compensated of this tree, a held demand [0, 0, 2, 0, 0, 0] N then
-            # [0.5, 0, 2, 0, 0, 0.1] makes the azimuths slew back and forth at the rate limit
-            # (2.86 deg per 10 ms step) indefinitely, open loop, no plant; with iterations=0 they
-            # settle. In HIL the compensated loop then loses depth and heading.
             from .compensation import allocate_compensated
 
             res = allocate_compensated(self.allocator, self.compensator, self.demand, nu_r=est.nu,
