@@ -16,8 +16,14 @@ outputs (spec 4.1, the same formula as `onboard.model.jets_and_transients`):
     lateral        g F1y along e_alpha,  g F2z along e_beta
     moment         r x (force change) - g M1z about body z
 
-`allocate_compensated` closes the loop with an allocator: allocate, predict the transient of that
-plan, allocate demand - prediction, repeat, so that achieved wrench + transient = demand.
+`allocate_compensated` allocates demand - c, c the compensated share of the transient of the
+coming step. With ZOH the rows are strictly proper (Dd = 0), so that transient is set by joint
+motion already committed (the free response of the carried states, `free_rows`) plus a forced
+part of at most C Bd / 2 <= 0.041 row units per rad/s of the step's own rate: no algebraic loop
+and no fixed-point iteration over the plan (which formed a limit cycle at the joints' rate limit).
+Only the rows that can be cancelled without turning the joints for it are (COMPENSATED_ROWS:
+axial loss in full, half the lateral force, not on yaw): cancelling the reaction moment or the
+lateral force by turning the azimuths excites them more than it cancels.
 """
 
 from __future__ import annotations
