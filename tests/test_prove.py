@@ -96,8 +96,23 @@ def test_prove_command_writes_prove_json(tmp_path, capsys):
     assert len(data["cases"]) == 1 and data["cases"][0]["case"] == "wall_proximity missing"
 
 
+# Cases that fail a check in the measured proof table (README), kept as failures: the check
+# that fails is named; strict, so a change in either direction is seen.
+KNOWN_FAILURES = {
+    "wall_proximity missing": "held-out NRMSE drops 30 %: the effect acts near the floor, a few % of the held-out time",
+    "linear_damping surge/sway +40 %": "held-out NRMSE does not drop: the imprint on 2 s shooting windows is at the floor",
+    "wall_proximity masked by heave damping": "the masking damping error is not named second (an unknown term is)",
+}
+
+
+def _marked(c):
+    if c.name in KNOWN_FAILURES:
+        return pytest.param(c, marks=pytest.mark.xfail(reason=KNOWN_FAILURES[c.name], strict=True))
+    return c
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("case", cases(), ids=lambda c: c.name)
+@pytest.mark.parametrize("case", [_marked(c) for c in cases()], ids=lambda c: c.name)
 def test_every_case(case, tmp_path):
     """The full proof set at the README's settings (120 s sessions). Failures here are the
     honest ones the README table lists; the test records the verdict of each check."""
