@@ -41,10 +41,18 @@ def n_of(result, t0, t1):
 
 # -- determinism ---------------------------------------------------------------------------------
 
-def test_same_seed_gives_the_same_recording_byte_for_byte(tmp_path):
-    runs = {}
+@pytest.fixture(scope="module")
+def dives(tmp_path_factory):
+    """Three 1.5 s dives with recordings: seeds 3, 3 and 4 (shared by the tests that read them)."""
+    out = {}
     for name, seed in (("a", 3), ("b", 3), ("c", 4)):
-        r = run_closed_loop(V, dive_and_hold(), 1.5, seed=seed, out_dir=tmp_path / name)
+        out[name] = run_closed_loop(V, dive_and_hold(), 1.5, seed=seed, out_dir=tmp_path_factory.mktemp(name))
+    return out
+
+
+def test_same_seed_gives_the_same_recording_byte_for_byte(dives):
+    runs = {}
+    for name, r in dives.items():
         assert r.endpoint["commands_applied"] == r.endpoint["periods"] == 150
         runs[name] = r.tlog.read_bytes()
     assert len(runs["a"]) > 150 * 200  # every frame: sensors, marker, ESC, command, servo PWM
@@ -365,14 +373,14 @@ def test_a_collaborator_that_raises_gives_safe_output_not_a_dead_loop(loop_pair)
     assert any("gains went missing" in x for x in texts)
 
 
-def test_replaying_the_recording_reproduces_every_command(tmp_path):
+def test_replaying_the_recording_reproduces_every_command(dives):
     """Replay code is live code: the plant's recording, fed to a fresh onboard loop through a
     `tlog:` link on the vehicle clock, makes it command exactly what the live loop commanded."""
     from onboard.link import Link
     from onboard.loop import OnboardLoop, VehicleClock
     from onboard.pwm import command_to_normalised
 
-    r = run_closed_loop(V, dive_and_hold(), 2.0, seed=7, out_dir=tmp_path)
+    r = dives["a"]
     replay = Link(f"tlog:{r.tlog}")
     loop = OnboardLoop(V, replay, VehicleClock())
     recorded = []
@@ -387,7 +395,7 @@ def test_replaying_the_recording_reproduces_every_command(tmp_path):
     loop.run(idle_exit_s=0.5)
     mine = {int(round(t * 1e6)): np.array(command_to_normalised(V, c), dtype=np.float32)
             for t, c in loop.stats.commands}
-    assert len(recorded) == 200 and replay.garbage_bytes == 0
+    assert len(recorded) == 150 and replay.garbage_bytes == 0
     assert all(np.array_equal(mine[us], controls) for us, controls in recorded)
     assert np.any([np.any(c[:4] > 0) for _, c in recorded])  # it was flying, not all zeros
 
@@ -437,13 +445,13 @@ def test_real_time_mode_follows_the_wall_clock():
     assert loop.armed
 
 
-def test_the_recording_reads_as_the_vehicle_with_commands_at_their_times(tmp_path):
+def test_the_recording_reads_as_the_vehicle_with_commands_at_their_times(dives):
     """ground.recording reads the plant's .tlog as system 1 component 1 with every stream
     spec/recording.md needs; SERVO_OUTPUT_RAW carries each applied command at the time it applied."""
     from ground.recording import read_recording
     from onboard.pwm import command_to_pwm
 
-    r = run_closed_loop(V, dive_and_hold(), 1.5, seed=0, out_dir=tmp_path)
+    r = dives["c"]
     rec = read_recording(r.tlog)
     assert rec.vehicle_id == (1, 1)
     assert rec.imu is not None and rec.pressure is not None and rec.servo is not None
