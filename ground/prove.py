@@ -16,7 +16,6 @@ from the plant, the verdicts from `diagnose`; failures stay in the table.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys

@@ -15,13 +15,13 @@ flagged bins merge into a window with its axes, its score (largest |z|) and regi
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
 from onboard.vehicle import Vehicle
 
 from . import replay
+from .replay import white_noise_sigma  # noqa: F401  (part of this module's API)
 from .candidates import CHANNEL_AXIS, CHANNELS, Evaluator, Split
 
 Z_FLAG = 5.0
@@ -31,18 +31,6 @@ HOLDOUT_BLOCKS = (2, 5, 8)  # of every 10 blocks: 30 % held out, spread over the
 DECIMATE_S = 0.05
 EDGE_S = 1.0
 NEFF_MAX_LAG_S = 5.0
-
-
-def white_noise_sigma(y) -> np.ndarray:
-    """sigma of white noise on a sampled signal: 1.4826 MAD(diff2) / sqrt(6), per column."""
-    y = np.asarray(y, float)
-    if y.ndim == 1:
-        y = y[:, None]
-    if len(y) < 5:
-        return np.zeros(y.shape[1])
-    d2 = y[2:] - 2 * y[1:-1] + y[:-2]
-    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
-    return 1.4826 * mad / math.sqrt(6.0)
 
 
 def sensor_noise(rec) -> dict:

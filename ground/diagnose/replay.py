@@ -79,6 +79,22 @@ class Trajectory:
 # Reconstruction
 
 
+def white_noise_sigma(y) -> np.ndarray:
+    """sigma of white noise on a sampled signal: 1.4826 MAD(diff2) / sqrt(6), per column.
+
+    For white noise of sigma s, the second difference has sigma s sqrt(6); smooth motion adds
+    little at the sensor rate, and the median makes the rare fast transient harmless.
+    """
+    y = np.asarray(y, float)
+    if y.ndim == 1:
+        y = y[:, None]
+    if len(y) < 5:
+        return np.zeros(y.shape[1])
+    d2 = y[2:] - 2 * y[1:-1] + y[:-2]
+    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    return 1.4826 * mad / math.sqrt(6.0)
+
+
 def _interp(t_grid, t, y):
     y = np.asarray(y, float)
     if y.ndim == 1:
@@ -309,9 +325,7 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
     def probe(t_native, y_native):
         y = np.asarray(y_native, float)
         y = y[:, None] if y.ndim == 1 else y
-        d2 = y[2:] - 2 * y[1:-1] + y[:-2]
-        sd = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / math.sqrt(6.0)
-        return _interp(t, t_native, rng.normal(size=y.shape) * sd)
+        return _interp(t, t_native, rng.normal(size=y.shape) * white_noise_sigma(y))
 
     pg, pa = probe(rec.imu.time_s, rec.imu.gyro_frd_rad_s), probe(rec.imu.time_s, rec.imu.accel_frd_m_s2)
     pp = probe(rec.pressure.time_s, rec.pressure.press_abs_pa)[:, 0] / (env.rho * env.g)
