@@ -189,6 +189,7 @@ class Link:
         self.mav.robust_parsing = True
         self._ready: deque = deque()
         self._held: list | None = None  # packets waiting for the end of a batch
+        self._datagrams = kind in ("udpin", "udpout")  # reads are whole datagrams
         self.bytes_in = 0
         self.good_bytes = 0
         self.bad_packets = 0
@@ -270,22 +271,34 @@ class Link:
             return self._ready.popleft()
         data = self._io.read(timeout_s)
         if data:
-            self.feed(data)
+            self.feed(data, datagram=self._datagrams)
         # drain what is already in the OS buffer without waiting again
         while not self._ready:
             data = self._io.read(0.0)
             if not data:
                 break
-            self.feed(data)
+            self.feed(data, datagram=self._datagrams)
         return self._ready.popleft() if self._ready else None
 
-    def feed(self, data: bytes) -> None:
-        """Parse bytes (from the transport or a replay) into the queue of good messages."""
+    def feed(self, data: bytes, datagram: bool = False) -> None:
+        """Parse bytes (from the transport or a replay) into the queue of good messages.
+
+        `datagram`: the bytes are one whole UDP datagram, and MAVLink senders put whole packets in
+        a datagram; a frame still incomplete at its end therefore began with a false start
+        marker, so it is rescanned from its next byte at once, rather than left waiting for the
+        next datagram (in lock-step nothing more may come until this one is answered).
+        """
         self.bytes_in += len(data)
         m = self._parse(bytes(data))
         while m is not None:
             self._accept(m)
             m = self._parse(b"")
+        while datagram and len(self.mav.buf) - self.mav.buf_index > 0:
+            self._resync(bytes(self.mav.buf[self.mav.buf_index + 1:]), drop_pending=True)
+            m = self._parse(b"")
+            while m is not None:
+                self._accept(m)
+                m = self._parse(b"")
 
     def _parse(self, data: bytes):
         try:
@@ -311,10 +324,11 @@ class Link:
         self.good_bytes += len(m.get_msgbuf())
         self._ready.append(m)
 
-    def _resync(self, rescan: bytes) -> None:
-        """Restart parsing at `rescan` + what is still unparsed (one byte past a bad packet's start)."""
+    def _resync(self, rescan: bytes, drop_pending: bool = False) -> None:
+        """Restart parsing at `rescan` + what is still unparsed (one byte past a bad packet's start).
+        With `drop_pending`, `rescan` replaces the unparsed bytes instead of going before them."""
         mav = self.mav
-        rest = bytes(mav.buf[mav.buf_index:])
+        rest = b"" if drop_pending else bytes(mav.buf[mav.buf_index:])
         mav.buf = bytearray(rescan + rest)
         mav.buf_index = 0
         mav.expected_length = HEADER_V1_MIN

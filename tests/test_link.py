@@ -185,3 +185,16 @@ def test_tlog_replay_reads_packets_in_order_and_counts_a_torn_tail(tmp_path):
     assert link.garbage_bytes == 0 and len(link.mav.buf) - link.mav.buf_index == 9  # waiting, not lost
     with pytest.raises(LinkError, match="cannot read recording"):
         Link(f"tlog:{tmp_path / 'missing.tlog'}")
+
+
+def test_udp_false_start_marker_does_not_hold_the_rest_of_the_datagram(udp_pair):
+    """A 0xFD in garbage announces a 255-byte frame that never comes; on a stream the parser would
+    wait for it, but a UDP datagram holds whole packets, so the packet after it is out at once."""
+    server, client = udp_pair
+    good1 = client.pack(heartbeat(custom_mode=1))
+    good2 = client.pack(heartbeat(custom_mode=2))
+    client.write_raw(good1 + b"\xfd\xff\x00" + good2)  # one datagram, nothing after it
+    msgs = drain(server, 0.2)
+    assert [m.custom_mode for m in msgs] == [1, 2]
+    assert server.garbage_bytes == 3
+    assert len(server.mav.buf) - server.mav.buf_index == 0  # nothing left waiting
