@@ -145,6 +145,8 @@ def _onboard_main(vehicle, link, ground, config, stop, results):
         summary["link"] = link.stats()
         summary["estimator_rejected"] = int(loop.estimator.health.rejected_total)
         results.put(("onboard", summary))
+    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the parent says so
+        pass
     except Exception as exc:  # reported to the parent, which prints it
         results.put(("onboard", {"error": f"{type(exc).__name__}: {exc}"}))
 
@@ -169,6 +171,8 @@ def _recorder_main(link, path, stop, results):
                     tlog.write_packet(bytes(m.get_msgbuf()), FIXED_EPOCH_US + t_us, name)
                     m = link.recv(0.0)
         results.put(("recorder", {"messages": counts, "link": link.stats()}))
+    except KeyboardInterrupt:
+        pass
     except Exception as exc:
         results.put(("recorder", {"error": f"{type(exc).__name__}: {exc}"}))
 
@@ -239,6 +243,7 @@ def run_closed_loop(
                      setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=30.0)
     got: dict = {}
     wall0 = time.perf_counter()
+    finished = False
     try:
         if progress:
             progress("waiting for the onboard loop (its first start compiles the model, up to a minute)")
@@ -263,14 +268,16 @@ def run_closed_loop(
             _drain(results, got, 10.0, want=("onboard",))
             why = got.get("onboard", {}).get("error")
             raise EndpointError(f"{exc}" + (f"; the onboard loop failed: {why}" if why else "")) from None
+        finished = True
     finally:
         wall = time.perf_counter() - wall0
         stop.set()
         if tlog is not None:
             tlog.close()
-        _drain(results, got, 20.0, want=("onboard", "recorder"))
+        # a finished flight waits for the parties' reports; an interrupted one does not linger
+        _drain(results, got, 20.0 if finished else 1.0, want=("onboard", "recorder"))
         for p in parties:
-            p.join(5.0)
+            p.join(5.0 if finished else 1.0)
             if use_fork and p.is_alive():
                 p.terminate()
         ep_link.close()
