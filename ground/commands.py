@@ -1,4 +1,4 @@
-"""Ground commands as standard MAVLink, MAVLink 2 signing, and the onboard side's checks (pure).
+"""Ground commands as standard MAVLink (pure builders and the operator's command lines).
 
 Commands (the onboard loop's own builders, onboard/loop.py, so both sides agree on the fields):
 - arm / disarm: COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM (param1 1 / 0)
@@ -11,34 +11,22 @@ Commands (the onboard loop's own builders, onboard/loop.py, so both sides agree 
 
 `parse_command("depth 1.5")` turns an operator's line into messages (`COMMAND_HELP` lists them).
 
-Signing (MAVLink 2, https://mavlink.io/en/guide/message_signing.html): a 32-byte secret key;
-each signed packet carries link id, a 48-bit timestamp (10 us since 2015-01-01) and the first
-6 bytes of sha256(key + packet). `load_key` reads a key file (32 raw bytes or 64 hex digits),
-`enable_signing` sets a pymavlink parser up to sign what it sends, and `SigningState` +
-`accept_command(msg, state)` is the onboard side's check: with a key, a command (anything that
-moves or reconfigures the vehicle) is accepted only with a good signature and a timestamp newer
-than the last one of its stream (pymavlink's `check_signature`, replay protection included).
-`StreamRates` is the onboard side of SET_MESSAGE_INTERVAL: which telemetry message is due when.
+Signing and stream rates are the robot's checks, so they live in `onboard.signing` and
+`onboard.stream_rates`; the names the ground uses are re-exported here.
 """
 
 from __future__ import annotations
 
 import math
-import time
-from dataclasses import dataclass
-from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-SIGNING_EPOCH_UNIX_S = 1_420_070_400  # 2015-01-01T00:00:00Z, MAVLink 2 signing time origin
-SIGNED_FLAG = 0x01  # MAVLINK_IFLAG_SIGNED, incompat_flags bit 0
-KEY_BYTES = 32
-# Messages that move or reconfigure the vehicle: refused unsigned when signing is on.
-COMMAND_MESSAGES = frozenset({
-    "COMMAND_LONG", "COMMAND_INT", "SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT",
-    "SET_ATTITUDE_TARGET", "MANUAL_CONTROL", "SET_MODE", "RC_CHANNELS_OVERRIDE", "PARAM_SET",
-    "SETUP_SIGNING", "MISSION_ITEM", "MISSION_ITEM_INT",
-})
+# The robot's side of signing and stream rates lives in onboard (the robot carries it).
+from onboard.signing import SigningError, enable_signing, load_key
+from onboard.stream_rates import StreamRates
+
+__all__ = ["CommandError", "SigningError", "StreamRates", "enable_signing", "load_key"]
+
 COMMAND_HELP = ("arm | disarm | mode NAME | depth M [yaw DEG] | yaw DEG | velocity U [V] | "
                 "manual X Y Z R | rate MESSAGE HZ")
 
@@ -167,144 +155,3 @@ def parse_command(line: str) -> list:
 
 
 # ------------------------------------------------------------------------------------------------
-# Signing
-
-
-def load_key(path) -> bytes:
-    """A 32-byte signing key from a file: 32 raw bytes, or 64 hex digits (whitespace ignored)."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise CommandError(f"key file {path}: cannot read: {exc.strerror or exc}") from exc
-    if len(data) == KEY_BYTES:
-        return data
-    text = data.decode("ascii", "replace").strip()
-    if len(text) == 2 * KEY_BYTES:
-        try:
-            return bytes.fromhex(text)
-        except ValueError:
-            pass
-    raise CommandError(f"key file {path}: expected {KEY_BYTES} raw bytes or {2 * KEY_BYTES} hex digits, "
-                       f"got {len(data)} bytes")
-
-
-def signing_timestamp(unix_s: float) -> int:
-    """MAVLink 2 signing time: units of 10 us since 2015-01-01."""
-    return int((unix_s - SIGNING_EPOCH_UNIX_S) * 100_000)
-
-
-def enable_signing(mav, key: bytes, link_id: int = 0, unix_s: float | None = None,
-                   accept_unsigned_incoming: bool = True) -> None:
-    """Sign everything `mav` (a pymavlink MAVLink object, e.g. Link.mav) packs from now on.
-
-    Incoming unsigned packets stay readable when `accept_unsigned_incoming` (the ground reads an
-    unsigned vehicle's telemetry); pymavlink checks the signature of signed ones.
-    """
-    if len(key) != KEY_BYTES:
-        raise CommandError(f"signing key: expected {KEY_BYTES} bytes, got {len(key)}")
-    s = mav.signing
-    s.secret_key = bytes(key)
-    s.link_id = int(link_id)
-    s.timestamp = signing_timestamp(time.time() if unix_s is None else unix_s)
-    s.sign_outgoing = True
-    s.allow_unsigned_callback = (lambda _mav, _msg_id: True) if accept_unsigned_incoming else None
-
-
-def is_signed(msg) -> bool:
-    buf = msg.get_msgbuf()
-    return len(buf) > 2 and buf[0] == 0xFD and bool(buf[2] & SIGNED_FLAG)
-
-
-@dataclass
-class SigningState:
-    """The onboard side's signing state: the key (None: signing off) and the per-stream
-    timestamps, kept in a pymavlink MAVLink object whose `check_signature` does the check."""
-
-    key: bytes | None = None
-    accepted: int = 0
-    rejected_unsigned: int = 0
-    rejected_bad: int = 0
-
-    def __post_init__(self):
-        self._mav = None
-        if self.key is not None:
-            if len(self.key) != KEY_BYTES:
-                raise CommandError(f"signing key: expected {KEY_BYTES} bytes, got {len(self.key)}")
-            self._mav = mavlink.MAVLink(None)
-            self._mav.signing.secret_key = bytes(self.key)
-            self._mav.signing.timestamp = signing_timestamp(time.time())
-
-    @property
-    def on(self) -> bool:
-        return self.key is not None
-
-
-def accept_command(msg, signing_state: SigningState | None) -> bool:
-    """Onboard: may this message act? True for non-commands and when signing is off; with signing
-    on, a command needs a good signature with a fresh timestamp (replays are refused)."""
-    if signing_state is None or not signing_state.on or msg.get_type() not in COMMAND_MESSAGES:
-        return True
-    if not is_signed(msg):
-        signing_state.rejected_unsigned += 1
-        return False
-    mav = signing_state._mav
-    buf = bytearray(msg.get_msgbuf())
-    stream = (buf[-13], msg.get_srcSystem(), msg.get_srcComponent())
-    before = mav.signing.stream_timestamps.get(stream)
-    if mav.check_signature(buf, msg.get_srcSystem(), msg.get_srcComponent()):
-        signing_state.accepted += 1
-        return True
-    # pymavlink records the timestamp before comparing the hash: a forged packet must not move
-    # the stream on (it would lock out the real sender), so restore it
-    if before is None:
-        mav.signing.stream_timestamps.pop(stream, None)
-    else:
-        mav.signing.stream_timestamps[stream] = before
-    signing_state.rejected_bad += 1
-    return False
-
-
-# ------------------------------------------------------------------------------------------------
-# Stream rates, onboard side
-
-
-class StreamRates:
-    """Which telemetry message is due: defaults per message name, changed by SET_MESSAGE_INTERVAL.
-
-    `handle(msg)` takes a COMMAND_LONG and returns a MAV_RESULT (None if it is not one);
-    `due(name, t_s)` is True when `name` should be sent at time t_s (and books it).
-    """
-
-    def __init__(self, default_hz: dict):
-        self.default_hz = {k.upper(): float(v) for k, v in default_hz.items()}
-        self.rate_hz = dict(self.default_hz)
-        self._next: dict = {}
-        self._names = {}
-
-    def handle(self, msg):
-        if msg.get_type() != "COMMAND_LONG" or int(msg.command) != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            return None
-        cls = mavlink.mavlink_map.get(int(round(msg.param1)))
-        if cls is None or not math.isfinite(msg.param2):
-            return mavlink.MAV_RESULT_DENIED
-        name, interval = cls.msgname, float(msg.param2)
-        if interval < 0:
-            self.rate_hz[name] = 0.0
-        elif interval == 0:
-            self.rate_hz[name] = self.default_hz.get(name, 0.0)
-        else:
-            self.rate_hz[name] = 1e6 / interval
-        self._next.pop(name, None)
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def due(self, name: str, t_s: float) -> bool:
-        hz = self.rate_hz.get(name, self.default_hz.get(name, 0.0))
-        if hz <= 0:
-            return False
-        nxt = self._next.get(name, -math.inf)
-        if t_s + 1e-9 < nxt:
-            return False
-        # next slot on the rate's grid (no drift), or from now when a slot was missed
-        self._next[name] = max(nxt + 1.0 / hz, t_s + 0.5 / hz) if math.isfinite(nxt) else t_s + 1.0 / hz
-        return True

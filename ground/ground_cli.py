@@ -154,7 +154,7 @@ def run(args) -> int:
     from onboard.link import LinkError
     from onboard.vehicle import VehicleFileError, load_vehicle
 
-    from ground.commands import CommandError, load_key, parse_command, parse_rates
+    from ground.commands import CommandError, SigningError, load_key, parse_command, parse_rates
     from ground.recorder import RecorderError
 
     try:
@@ -168,7 +168,7 @@ def run(args) -> int:
             raise CommandError(f"--max-mb {args.max_mb}: expected a size in MB > 0")
         session = GroundSession(args.link, vehicle, args.record, key, rates, commands,
                                 max_bytes=int(args.max_mb * 1024 * 1024))
-    except (CommandError, LinkError, RecorderError, VehicleFileError, OSError) as exc:
+    except (CommandError, SigningError, LinkError, RecorderError, VehicleFileError, OSError) as exc:
         print(f"jetloop ground: {exc}", file=sys.stderr)
         return 2
     try:

@@ -40,7 +40,7 @@ from .mavlink_codec import CodecError
 from .pwm import command_to_normalised, command_to_pwm
 from .sensors import depth_from_pressure
 from .vehicle import Vehicle
-from ground.commands import accept_command
+from .signing import accept_command
 
 IMU_RANK = {"HIGHRES_IMU": 0, "SCALED_IMU": 1, "SCALED_IMU2": 2, "SCALED_IMU3": 3, "RAW_IMU": 4}
 BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
@@ -293,7 +293,8 @@ class OnboardLoop:
         self.demand = np.zeros(6)
         self.stats = LoopStats()
         # the ground's signing and SET_MESSAGE_INTERVAL, onboard side (ground/commands.py)
-        from ground.commands import SigningState, StreamRates
+        from .signing import SigningState
+        from .stream_rates import StreamRates
 
         self.signing = SigningState(config.signing_key)
         self.rates = StreamRates({**{n: config.telemetry_rate_hz for n in TELEMETRY_STREAMS},

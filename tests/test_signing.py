@@ -10,7 +10,8 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from ground.commands import (CommandError, SigningState, accept_command, arm, enable_signing, is_signed,
+from ground.commands import arm
+from onboard.signing import (SigningError, SigningState, accept_command, enable_signing, is_signed,
                              load_key, signing_timestamp)
 from ground.ground_cli import GroundSession
 from onboard.link import Link
@@ -36,9 +37,9 @@ def test_key_file_forms_and_errors(tmp_path):
     short = tmp_path / "short.key"
     short.write_bytes(b"123")
     assert load_key(raw) == KEY and load_key(hexf) == KEY
-    with pytest.raises(CommandError, match=r"short.key: expected 32 raw bytes or 64 hex digits, got 3 bytes"):
+    with pytest.raises(SigningError, match=r"short.key: expected 32 raw bytes or 64 hex digits, got 3 bytes"):
         load_key(short)
-    with pytest.raises(CommandError, match="cannot read"):
+    with pytest.raises(SigningError, match="cannot read"):
         load_key(tmp_path / "missing.key")
 
 
@@ -75,7 +76,7 @@ def test_signing_off_accepts_everything():
     unsigned = _parse(arm(True).pack(mavlink.MAVLink(None, 255, 190)))
     assert accept_command(unsigned, None)
     assert accept_command(unsigned, SigningState(None))
-    with pytest.raises(CommandError, match="expected 32 bytes"):
+    with pytest.raises(SigningError, match="expected 32 bytes"):
         SigningState(b"short")
 
 

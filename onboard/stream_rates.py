@@ -1,0 +1,48 @@
+"""Telemetry stream rates on the robot: which message is due when, set by SET_MESSAGE_INTERVAL."""
+
+from __future__ import annotations
+
+import math
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+
+class StreamRates:
+    """Which telemetry message is due: defaults per message name, changed by SET_MESSAGE_INTERVAL.
+
+    `handle(msg)` takes a COMMAND_LONG and returns a MAV_RESULT (None if it is not one);
+    `due(name, t_s)` is True when `name` should be sent at time t_s (and books it).
+    """
+
+    def __init__(self, default_hz: dict):
+        self.default_hz = {k.upper(): float(v) for k, v in default_hz.items()}
+        self.rate_hz = dict(self.default_hz)
+        self._next: dict = {}
+        self._names = {}
+
+    def handle(self, msg):
+        if msg.get_type() != "COMMAND_LONG" or int(msg.command) != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return None
+        cls = mavlink.mavlink_map.get(int(round(msg.param1)))
+        if cls is None or not math.isfinite(msg.param2):
+            return mavlink.MAV_RESULT_DENIED
+        name, interval = cls.msgname, float(msg.param2)
+        if interval < 0:
+            self.rate_hz[name] = 0.0
+        elif interval == 0:
+            self.rate_hz[name] = self.default_hz.get(name, 0.0)
+        else:
+            self.rate_hz[name] = 1e6 / interval
+        self._next.pop(name, None)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def due(self, name: str, t_s: float) -> bool:
+        hz = self.rate_hz.get(name, self.default_hz.get(name, 0.0))
+        if hz <= 0:
+            return False
+        nxt = self._next.get(name, -math.inf)
+        if t_s + 1e-9 < nxt:
+            return False
+        # next slot on the rate's grid (no drift), or from now when a slot was missed
+        self._next[name] = max(nxt + 1.0 / hz, t_s + 0.5 / hz) if math.isfinite(nxt) else t_s + 1.0 / hz
+        return True
