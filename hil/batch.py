@@ -25,15 +25,14 @@ or "spawn"; threads within one batch come from numba (`numba.set_num_threads`).
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 from numba import njit, prange
 
 from onboard import model
+from onboard.jit import MODEL_SOURCE, cache_keyed_on
 from onboard.vehicle import Vehicle, VehicleFileError
 
 # Named pieces of the state a recording can ask for (see onboard.model.StateLayout).
@@ -68,44 +67,7 @@ def _run(states, schedule, params, dt, hold, n_steps, every, idx, record, out):
             out[i, j] = x[j]
 
 
-def _cache_keyed_on(dispatcher, *sources: Path) -> None:
-    """Cache `dispatcher` on disk, invalid once its own file or any of `sources` changes.
-
-    numba's `cache=True` checks only the file of the function it compiles, but the kernel above
-    compiles `model.rk4_step` into itself: after an edit of onboard/model.py a plain cached kernel
-    would go on running the old physics. Here the cache's source stamp also holds the hashes of
-    `sources`. If numba's caching internals move, the kernel is simply not cached (compiled once
-    per process), never stale.
-    """
-    try:
-        from numba.core.caching import CompileResultCacheImpl, FunctionCache
-
-        digests = tuple(hashlib.sha256(Path(f).read_bytes()).hexdigest() for f in sources)
-
-        class _Stamped:
-            def __init__(self, inner):
-                self._inner = inner
-
-            def __getattr__(self, name):
-                return getattr(self._inner, name)
-
-            def get_source_stamp(self):
-                return (self._inner.get_source_stamp(), digests)
-
-        class _Impl(CompileResultCacheImpl):
-            def __init__(self, py_func):
-                super().__init__(py_func)
-                self._locator = _Stamped(self._locator)
-
-        class _Cache(FunctionCache):
-            _impl_class = _Impl
-
-        dispatcher._cache = _Cache(dispatcher.py_func)
-    except Exception:  # pragma: no cover - a numba without these internals, or no writable cache dir
-        pass
-
-
-_cache_keyed_on(_run, Path(model.__file__))
+cache_keyed_on(_run, MODEL_SOURCE)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -36,6 +36,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from . import model, pwm
+from .jit import MODEL_SOURCE, key_caches_on
 from .vehicle import Vehicle
 
 AXES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
@@ -698,3 +699,7 @@ __all__ = [
     "QpAllocator",
     "PseudoInverseAllocator",
 ]
+
+
+# Kernels above compile onboard.model functions into themselves: key their disk cache on it.
+key_caches_on(globals(), MODEL_SOURCE)

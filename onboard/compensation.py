@@ -36,6 +36,7 @@ from numba import njit
 from scipy.signal import cont2discrete, tf2ss
 
 from . import model
+from .jit import MODEL_SOURCE, key_caches_on
 from .allocation import Allocation, JetGeometry
 from .vehicle import Vehicle
 
@@ -386,3 +387,7 @@ __all__ = [
     "CompensatedAllocation",
     "allocate_compensated",
 ]
+
+
+# Kernels above compile onboard.model functions into themselves: key their disk cache on it.
+key_caches_on(globals(), MODEL_SOURCE)

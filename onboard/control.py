@@ -46,6 +46,7 @@ import numpy as np
 from numba import njit
 
 from . import model
+from .jit import MODEL_SOURCE, key_caches_on
 from .estimator import EstimatedState
 from .vehicle import Vehicle
 
@@ -485,3 +486,7 @@ def _control_law(p, est, nu, ref, gv, cap, sat, sat_dir, ints, dt, flags):
 
 
 __all__ = ["Controller", "Gains", "ManualAxes", "Reference", "Setpoint", "Wrench", "axis_capacity"]
+
+
+# Kernels above compile onboard.model functions into themselves: key their disk cache on it.
+key_caches_on(globals(), MODEL_SOURCE)

@@ -54,6 +54,7 @@ from numba import njit
 from scipy.stats import chi2
 
 from . import model
+from .jit import MODEL_SOURCE, key_caches_on
 from .model import P_SURF, derivative, quat_to_euler, rk4_step, specific_force
 from .sensors import AttitudeSample, ImuSample
 from .vehicle import Vehicle
@@ -804,3 +805,7 @@ __all__ = [
     "STREAMS",
     "state_from_truth",
 ]
+
+
+# Kernels above compile onboard.model functions into themselves: key their disk cache on it.
+key_caches_on(globals(), MODEL_SOURCE)

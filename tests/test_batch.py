@@ -237,3 +237,21 @@ def test_kernel_cache_is_invalidated_by_a_model_edit():
     digest = hashlib.sha256(Path(model.__file__).read_bytes()).hexdigest()
     stamp = batch._run._cache._impl.locator.get_source_stamp()
     assert stamp[1] == (digest,)
+
+
+def test_every_onboard_kernel_that_compiles_the_model_is_keyed_on_it():
+    """The same guard for the onboard modules whose kernels call onboard.model functions."""
+    import hashlib
+    from pathlib import Path
+
+    from numba.core.caching import FunctionCache
+
+    from onboard import allocation, compensation, control, estimator
+
+    digest = hashlib.sha256(Path(model.__file__).read_bytes()).hexdigest()
+    for module in (allocation, compensation, control, estimator):
+        kernels = [o for o in vars(module).values()
+                   if isinstance(getattr(o, "_cache", None), FunctionCache) and o.py_func.__module__ == module.__name__]
+        assert kernels, module.__name__
+        for k in kernels:
+            assert k._cache._impl.locator.get_source_stamp()[1] == (digest,), (module.__name__, k.__name__)

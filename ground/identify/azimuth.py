@@ -29,13 +29,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from numba import njit
 from scipy.optimize import least_squares, minimize
 
-from hil.batch import _cache_keyed_on
+from onboard.jit import MODEL_SOURCE, cache_keyed_on
 from onboard import model
 
 ROWS = ("f1x", "f1y", "m1z", "f2x", "f2z")
@@ -189,8 +188,8 @@ def _rig_run(x, commands, p, dt, sub, unit, out):
     return x
 
 
-_cache_keyed_on(_rig_derivative, Path(model.__file__))
-_cache_keyed_on(_rig_run, Path(model.__file__))
+cache_keyed_on(_rig_derivative, MODEL_SOURCE)
+cache_keyed_on(_rig_run, MODEL_SOURCE)
 
 
 def simulate_fixed_rig(vehicle, design: PseudoImpulse, axis: str = "azimuth", unit: int = 0,
