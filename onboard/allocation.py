@@ -117,8 +117,8 @@ class AllocationConfig:
 
 @njit(cache=True)
 def _K(J, tp):
-    """K(J) = kt0 + kt1 J + kt2 J^2 (seed 000 eq. 14-15)."""
-    return tp[2] + tp[3] * J + tp[4] * J * J
+    """K(J) = kt0 + kt1 J + kt2 J^2 (seed 000 eq. 14-15), the model's own function."""
+    return model.thrust_coefficient(J, tp[2], tp[3], tp[4])
 
 
 @njit(cache=True)
@@ -177,9 +177,7 @@ def thrust_of_speed(n, v_axial, tp):
     k = n.shape[0]
     out = np.empty(k)
     for i in range(k):
-        J = 0.0
-        if tp[8] > 0.5 and n[i] > 1e-9:
-            J = min(max(v_axial[i] / (n[i] * tp[1]), tp[5]), tp[6])
+        J = model.advance_ratio(v_axial[i], n[i], tp[1], tp[5], tp[6]) if tp[8] > 0.5 else 0.0
         out[i] = tp[0] * tp[1] ** 4 * n[i] * n[i] * _K(J, tp)
     return out
 

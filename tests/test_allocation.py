@@ -410,3 +410,19 @@ def test_change_penalty_applies_only_with_a_previous_command(vehicle):
     with_c.reset()
     again = with_c.allocate(tau2, a, b, commit=False)
     np.testing.assert_allclose(again.force_body_n, free.force_body_n, atol=2e-3)
+
+
+def test_allocator_thrust_is_the_plant_model_thrust_with_inflow_off_too():
+    """With `thrust_inflow` off the allocator's thrust is the model's bollard thrust as well."""
+    from onboard import model
+    from onboard.allocation import JetGeometry
+    from onboard.vehicle import load_vehicle
+
+    rng = np.random.default_rng(7)
+    for inflow in (False,):
+        v = load_vehicle().with_effects(thrust_inflow=inflow)
+        geo, p = JetGeometry(v), model.pack_params(v)
+        n = rng.uniform(0.0, v.thruster.n_max, 200)
+        va = rng.uniform(-1.0, 2.0, 200)
+        expected = [model.jet_thrust(float(a), float(b), p) for a, b in zip(n, va)]
+        np.testing.assert_allclose(geo.thrust(n, va), expected, rtol=1e-12, atol=1e-12)
