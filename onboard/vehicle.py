@@ -411,10 +411,16 @@ def _replace_path(obj, parts: list[str], value, full_key: str):
 def fragment_toml(values: dict[str, Any]) -> str:
     """A vehicle-file fragment (TOML) for dotted keys, e.g. fitted parameters to paste back."""
     tables: dict[str, list[str]] = {}
+    unit_lines = []
     for key, value in values.items():
+        if key.startswith("unit["):
+            # TOML cannot address one [[unit]] table by index: say which one to edit
+            unit_lines.append(f"# {key} = {_toml_value(value)}   (edit [[unit]] number {int(key[5:key.index(']')]) + 1})")
+            continue
         table, _, leaf = key.rpartition(".")
         tables.setdefault(table, []).append(f"{leaf} = {_toml_value(value)}")
-    return "\n".join(f"[{t}]\n" + "\n".join(lines) + "\n" for t, lines in tables.items())
+    out = "\n".join(f"[{t}]\n" + "\n".join(lines) + "\n" for t, lines in tables.items())
+    return out + ("\n".join(unit_lines) + "\n" if unit_lines else "")
 
 
 def _toml_value(v) -> str:

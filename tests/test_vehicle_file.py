@@ -286,3 +286,14 @@ def test_fragment_toml_parses_back_to_the_same_values(vehicle):
     assert v.body.mass == 6.75
     assert not v.effects.on("motor_lag")
     assert v.hydro.added_mass[2] == 4.6
+
+
+def test_fragment_with_a_unit_key_stays_valid_toml_and_names_the_table():
+    import tomllib
+
+    from onboard.vehicle import fragment_toml
+
+    text = fragment_toml({"hydro.added_mass": [1, 2, 3, 4, 5, 6], "unit[2].position": [0.1, 0.2, 0.3]})
+    doc = tomllib.loads(text)
+    assert doc["hydro"]["added_mass"] == [1, 2, 3, 4, 5, 6]
+    assert "# unit[2].position = [0.1, 0.2, 0.3]" in text and "[[unit]] number 3" in text
