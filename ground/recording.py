@@ -382,7 +382,18 @@ def _decode_bulk(buf: np.ndarray, offsets, lengths, cls) -> np.ndarray:
 
 
 WANTED = ("HEARTBEAT", "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "SCALED_PRESSURE2",
-          "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ATT_POS_MOCAP")
+          "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ESC_TELEMETRY_1_TO_4", "ATT_POS_MOCAP")
+
+
+def _log_clock_offset(decoded, ts, use, mid, name_to_id):
+    """Median (logger time - vehicle time) in s over a stream that carries vehicle time, or None."""
+    for name, field, scale in (("HIGHRES_IMU", "time_usec", 1e-6), ("SCALED_PRESSURE2", "time_boot_ms", 1e-3),
+                               ("ATTITUDE", "time_boot_ms", 1e-3), ("SCALED_IMU2", "time_boot_ms", 1e-3)):
+        if name in decoded and len(decoded[name]):
+            t_log = ts[use & (mid == name_to_id[name])].astype(np.float64) / 1e6
+            t_vehicle = np.asarray(decoded[name][field], np.float64) * scale
+            return float(np.median(t_log - t_vehicle))
+    return None
 
 
 def _read_tlog(path: Path, data: bytes) -> Recording:
@@ -428,6 +439,15 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
         a = a[a["index"] == 0]  # units 1-4
         t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "esc", nonmono, gaps)
         esc = EscStream(_frozen(t), _frozen(np.asarray(a["rpm"], float)[keep]))
+    if esc is None and "ESC_TELEMETRY_1_TO_4" in decoded:
+        # ESC_TELEMETRY carries no time of its own (it is how ArduSub and our codec send rpm):
+        # place it on vehicle time through the logger clock's offset from a stream that has one
+        sel = use & (mid == name_to_id["ESC_TELEMETRY_1_TO_4"])
+        t_log = ts[sel].astype(np.float64) / 1e6
+        offset = _log_clock_offset(decoded, ts, use, mid, name_to_id)
+        if offset is not None:
+            t, keep = _monotonic(t_log - offset, "esc", nonmono, gaps)
+            esc = EscStream(_frozen(t), _frozen(np.asarray(decoded["ESC_TELEMETRY_1_TO_4"]["rpm"], float)[keep]))
     mocap = None
     if "ATT_POS_MOCAP" in decoded:
         a = decoded["ATT_POS_MOCAP"]
