@@ -8,8 +8,19 @@ import pytest
 
 from onboard.vehicle import EFFECT_IDS, Vehicle, load_vehicle
 
-# The vehicle file of the shared project tree (spec/vehicle-model.md's reference vehicle).
-SHARED_VEHICLE = Path("/work/shared/vehicles/asr4.toml")
+# The shared project tree (specs, reference vehicle, real ArduSub logs) stands beside the
+# repository, in every developer's checkout and in CI's fresh clone. Tests that read it fail,
+# not skip, when it is missing: a test that silently does nothing cannot fail.
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+SHARED_VEHICLE = SHARED / "vehicles" / "asr4.toml"
+ARDUSUB = SHARED / "data" / "ardusub"
+
+
+def shared_file(path: Path) -> Path:
+    """`path` under shared/, or a clear failure saying where it was expected."""
+    if not path.exists():
+        pytest.fail(f"{path} is missing: the shared project tree must stand beside the repository")
+    return path
 
 
 @pytest.fixture(scope="session")
@@ -37,3 +48,9 @@ def reference_text() -> str:
     from onboard.vehicle import DEFAULT_VEHICLE
 
     return DEFAULT_VEHICLE.read_text(encoding="utf-8")
+
+
+@pytest.fixture
+def ardusub_data() -> Path:
+    """The real BlueROV2/ArduSub recordings of shared/data/ardusub (fails if they are missing)."""
+    return shared_file(ARDUSUB)

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import ARDUSUB, shared_file
 from ground.cli import main
 from ground.diagnose import candidates, locate, replay, sparse
 from ground.prove import Pilot, record_session, session_setpoints
@@ -202,15 +202,12 @@ def test_cli_bad_inputs_give_clear_errors(tmp_path, capsys):
     assert "invalid vehicle file" in capsys.readouterr().err
 
 
-BIN = Path("/work/shared/data/ardusub/small.BIN")
-if not BIN.exists():  # CI checkouts keep shared/ beside the repository
-    BIN = Path(__file__).resolve().parents[2] / "shared" / "data" / "ardusub" / "small.BIN"
+BIN = ARDUSUB / "small.BIN"
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not BIN.exists(), reason="shared/data/ardusub not present")
 def test_real_ardusub_dataflash_log_runs_end_to_end(capsys):
-    path = BIN
+    path = shared_file(BIN)
     # a real BlueROV2 log read with the asr4 file as the (wrong) nominal model: the command runs
     # to a report (its rates are too low for identification, so what it names is not checked)
     code = main(["diagnose", str(path), "--quiet"])

@@ -10,15 +10,13 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from conftest import ARDUSUB
 from ground.cli import main
 from ground.plot import PANELS, _seq, make_plots, read_extras
 from ground.recording import read_recording
 from hil.tlog import TlogWriter
 
-ARDUSUB = Path(__file__).resolve().parents[2] / "shared" / "data" / "ardusub"
-if not ARDUSUB.exists():
-    ARDUSUB = Path("/work/shared/data/ardusub")
-needs_ardusub = pytest.mark.skipif(not ARDUSUB.exists(), reason="ArduSub recordings not present")
+needs_ardusub = pytest.mark.usefixtures("ardusub_data")
 
 
 def _pngs_ok(out: Path):

@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from conftest import ARDUSUB
 from ground.recording import G_MSS, RecordingError, read_recording
 
-DATA = Path("/work/shared/data/ardusub")
-if not DATA.exists():  # CI checkouts keep shared/ beside the repository
-    DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ardusub"
-needs_data = pytest.mark.skipif(not DATA.exists(), reason="shared/data/ardusub not present")
+DATA = ARDUSUB
+needs_data = pytest.mark.usefixtures("ardusub_data")
 
 
 def _pymavlink_bad_data(path, counts=None):

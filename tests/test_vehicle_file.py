@@ -12,7 +12,7 @@ import tomllib
 
 import pytest
 
-from conftest import SHARED_VEHICLE
+from conftest import SHARED_VEHICLE, shared_file
 from onboard.vehicle import (
     DEFAULT_VEHICLE,
     EFFECT_IDS,
@@ -67,8 +67,7 @@ def test_packaged_default_equals_shared_reference_file():
     Outside the project tree the shared file is absent; then the packaged file must still
     load (checked above), and this comparison has nothing to compare against.
     """
-    if not SHARED_VEHICLE.exists():
-        return
+    shared_file(SHARED_VEHICLE)
     packaged = tomllib.loads(DEFAULT_VEHICLE.read_text(encoding="utf-8"))
     shared = tomllib.loads(SHARED_VEHICLE.read_text(encoding="utf-8"))
     assert packaged == shared
