@@ -100,6 +100,7 @@ class HilEndpoint:
         self.on_period = on_period
         self.k = 0
         self.stats = EndpointStats()
+        self._marker_packet = b""  # the last frame marker, re-sent as is when a reply is late
         self.history = history  # keep truth and commands (off for long runs: they grow)
         self.truth: list = []  # TruthSample at the IMU instants
         self.commands: list = []  # (t_s, command vector applied from t_s)
@@ -128,11 +129,12 @@ class HilEndpoint:
         if self.tlog is not None:
             self.tlog.write_packet(packet, self._stamp_us(t_s), msg_type)
 
-    def _send(self, msg, t_s: float) -> None:
+    def _send(self, msg, t_s: float) -> bytes:
         packet = self.link.send(msg)
         name = msg.get_type()
         self.stats.sent[name] = self.stats.sent.get(name, 0) + 1
         self._record(packet, t_s, name)
+        return packet
 
     def _send_as_gcs(self, msg, t_s: float) -> None:
         packet = bytes(msg.pack(self._gcs))
@@ -213,7 +215,7 @@ class HilEndpoint:
         while self._garbage_due and self._garbage_due[0] <= t + 1e-9:
             self._garbage_due.pop(0)
             self.link.write_raw(self._rng.integers(0, 256, self.faults.garbage_bytes, dtype=np.uint8).tobytes())
-        self._send(mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t)), t)
+        self._marker_packet = self._send(mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t)), t)
 
     # -- commands --------------------------------------------------------------------------------
     def _await_command(self, t: float) -> None:
@@ -228,8 +230,11 @@ class HilEndpoint:
                         f"lock-step: no actuator command for t = {t:.3f} s within {self.give_up_s:.0f} s "
                         f"on {self.link.connection}"
                     )
-                self.stats.resends += 1  # the marker may have been lost: say again where we are
-                self._send(mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t)), t)
+                # The marker may have been lost: send the same packet again (same sequence
+                # number) and do not record it, so a slow controller (e.g. compiling on its first
+                # start) leaves the recording byte for byte what a fast one would.
+                self.stats.resends += 1
+                self.link.write_raw(self._marker_packet)
                 continue
             self._handle(m, t)
 

@@ -465,3 +465,63 @@ def test_the_recording_reads_as_the_vehicle_with_commands_at_their_times(dives):
     assert len(rec.servo.time_s) == 149  # one per frame, after the first command
     for t, pwm in zip(rec.servo.time_s, rec.servo.pwm_us):
         assert np.array_equal(pwm[:12], applied[round(t * 1e3)][:12])
+
+
+# -- a slow controller does not change the recording ----------------------------------------------
+
+def _scripted_controller(port: int, stop, late_every: int, late_s: float):
+    """Answers every frame marker with a fixed HIL_ACTUATOR_CONTROLS stamped with its time;
+    every `late_every`-th marker only after `late_s` (a controller busy compiling, say)."""
+    import time as _time
+
+    from onboard import mavlink_codec as codec
+    from onboard.link import Link
+
+    link = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=191)
+    link.send(codec.heartbeat(armed=True))
+    answered, k = set(), 0
+    controls = [0.3, 0.3, 0.3, 0.3] + [0.1] * 8 + [0.0] * 4
+    while not stop.is_set():
+        m = link.recv(0.05)
+        if m is None or m.get_type() != "SYSTEM_TIME" or m.time_boot_ms in answered:
+            continue
+        answered.add(m.time_boot_ms)
+        k += 1
+        if late_every and k % late_every == 0:
+            _time.sleep(late_s)
+        link.send(codec.mavlink2.MAVLink_hil_actuator_controls_message(
+            int(m.time_boot_ms) * 1000, controls, 0, 0))
+    link.close()
+
+
+def _scripted_flight(tmp_path, name: str, late_every: int):
+    import threading
+
+    from hil.endpoint import HilEndpoint
+    from hil.plant import Plant
+    from hil.tlog import TlogWriter
+    from onboard.link import Link
+
+    link = Link("udpin:127.0.0.1:0", source_system=1, source_component=1)
+    stop = threading.Event()
+    ctl = threading.Thread(target=_scripted_controller, args=(link.local_address[1], stop, late_every, 0.06))
+    ctl.start()
+    path = tmp_path / f"{name}.tlog"
+    try:
+        with TlogWriter(path) as tlog:
+            ep = HilEndpoint(V, link, Plant(V, seed=9), tlog=tlog, reply_timeout_s=0.02, history=False)
+            ep.run(0.5)
+    finally:
+        stop.set()
+        ctl.join()
+        link.close()
+    return path.read_bytes(), ep.stats.resends
+
+
+def test_a_late_controller_leaves_the_recording_byte_for_byte_the_same(tmp_path):
+    """Lock-step re-sends a frame marker when the reply is late; the re-send is the same packet
+    and is not recorded, so the recording does not depend on how fast the controller was."""
+    fast, fast_resends = _scripted_flight(tmp_path, "fast", late_every=0)
+    slow, slow_resends = _scripted_flight(tmp_path, "slow", late_every=7)
+    assert fast_resends == 0 and slow_resends > 0  # the slow flight really made the plant re-send
+    assert fast == slow
