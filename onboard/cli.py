@@ -30,6 +30,9 @@ def configure(parser) -> None:
     parser.add_argument("--no-compensation", action="store_true", help="turn the seed-004 transient compensation off")
     parser.add_argument("--estimator", choices=("filterpy", "compiled"), default="filterpy",
                         help="EKF backend: filterpy (default) or the same equations compiled with numba")
+    parser.add_argument("--key", default=None, metavar="KEYFILE",
+                        help="MAVLink 2 signing key (32 raw bytes or 64 hex digits): unsigned, forged or "
+                             "replayed commands are refused and counted")
     parser.add_argument("--rate", type=float, default=None, metavar="HZ", help="control rate (default: the IMU rate)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of loop time")
     parser.add_argument("--idle-exit", type=float, default=None, metavar="S",
@@ -39,11 +42,13 @@ def configure(parser) -> None:
 def run(args) -> int:
     from onboard.link import Link, LinkError
     from onboard.loop import LoopConfig, OnboardLoop, VehicleClock, WallClock
+    from onboard.signing import SigningError, load_key
     from onboard.vehicle import VehicleFileError, load_vehicle
 
     try:
         vehicle = load_vehicle(args.vehicle)
-    except VehicleFileError as exc:
+        key = load_key(args.key) if args.key else None
+    except (VehicleFileError, SigningError) as exc:
         print(f"jetloop onboard: {exc}", file=sys.stderr)
         return 2
     rate = args.rate if args.rate is not None else vehicle.sensors.imu_rate
@@ -57,11 +62,13 @@ def run(args) -> int:
         print(f"jetloop onboard: {exc}", file=sys.stderr)
         return 2
     config = LoopConfig(control_rate_hz=rate, output=args.output, allocator=args.allocator,
-                        compensation=not args.no_compensation, estimator_backend=args.estimator)
+                        compensation=not args.no_compensation, estimator_backend=args.estimator,
+                        signing_key=key)
     clock = VehicleClock() if args.lockstep else WallClock()
     loop = OnboardLoop(vehicle, link, clock, config, ground=ground)
     print(f"jetloop onboard: {vehicle.name} on {args.link} ({'lock-step' if args.lockstep else 'real time'}, "
-          f"{rate:g} Hz, {args.allocator}{'' if config.compensation else ', no compensation'})", flush=True)
+          f"{rate:g} Hz, {args.allocator}{'' if config.compensation else ', no compensation'}"
+          f"{', commands must be signed' if key else ''})", flush=True)
     t0 = time.monotonic()
     idle = args.idle_exit if args.idle_exit is not None else (10.0 if args.lockstep else None)
     why = "interrupted"

@@ -140,3 +140,50 @@ def test_onboard_loop_with_a_key_obeys_only_signed_commands():
         assert loop.stats.rejected_inputs == 0 and len(loop._queue) == 1
     finally:
         link.close()
+
+
+def test_jetloop_onboard_with_a_key_file_answers_only_signed_commands(tmp_path):
+    """The robot's own process: `jetloop onboard --key` acknowledges an arm command signed with
+    the key and ignores the same command unsigned; one sender does both, so the loop's replies
+    always come back to it. A bad key file is refused before anything listens."""
+    import subprocess
+    import sys
+
+    from ground.commands import arm
+
+    bad = tmp_path / "bad.key"
+    bad.write_bytes(b"abc")
+    r = subprocess.run([sys.executable, "-m", "ground.cli", "onboard", "--link", "udpin:127.0.0.1:0",
+                        "--key", str(bad)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "bad.key: expected 32 raw bytes or 64 hex digits" in r.stderr
+
+    keyfile = tmp_path / "robot.key"
+    keyfile.write_text(KEY.hex())
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "ground.cli", "onboard", "--link", f"udpin:127.0.0.1:{port}",
+                             "--key", str(keyfile), "--realtime", "--duration", "90"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    link = Link(f"udpout:127.0.0.1:{port}")
+    unsigned = arm(True).pack(mavlink.MAVLink(None, 255, 190))
+
+    def acked(packet_of, seconds):
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            link.write_raw(packet_of())
+            m = link.recv(0.1)
+            if m is not None and m.get_type() == "COMMAND_ACK":
+                return True
+        return False
+
+    try:
+        # signed: acknowledged (also proves the loop is up and replies to this one sender)
+        assert acked(lambda: _signed(arm(True)).get_msgbuf(), 60.0)  # first start compiles the model
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:  # drain the acks of signed commands still in flight
+            link.recv(0.1)
+        assert not acked(lambda: unsigned, 1.5)  # the same command unsigned: ignored
+        assert acked(lambda: _signed(arm(True)).get_msgbuf(), 5.0)  # and the loop is still there
+    finally:
+        link.close()
+        proc.terminate()
+        proc.wait(timeout=30)
