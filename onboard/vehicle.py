@@ -394,18 +394,20 @@ def _replace_path(obj, parts: list[str], value, full_key: str):
         return dataclasses.replace(obj, **{name: new})
     f = next(f for f in dataclasses.fields(obj) if f.name == name)
     if "check" in f.metadata:
-        raw = list(value) if isinstance(value, (tuple, list)) or hasattr(value, "tolist") else value
-        if hasattr(raw, "tolist"):
-            raw = raw.tolist()
-        if isinstance(raw, list):
-            raw = [x.item() if hasattr(x, "item") else x for x in raw]
-        elif hasattr(raw, "item"):
-            raw = raw.item()
-        ok, coerced = _coerce(raw, f)
+        ok, coerced = _coerce(_plain(value), f)
         if not ok:
             raise VehicleFileError(f"{full_key}: expected {_expect(f)}, got {value!r}")
         value = coerced
     return dataclasses.replace(obj, **{name: value})
+
+
+def _plain(value):
+    """numpy arrays and scalars -> Python lists and numbers, so they validate like TOML values."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    if isinstance(value, (tuple, list)):
+        return [_plain(x) for x in value]
+    return value
 
 
 def fragment_toml(values: dict[str, Any]) -> str:
