@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 
 import pytest
@@ -54,3 +55,10 @@ def reference_text() -> str:
 def ardusub_data() -> Path:
     """The real BlueROV2/ArduSub recordings of shared/data/ardusub (fails if they are missing)."""
     return shared_file(ARDUSUB)
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that was free a moment ago (for a process that binds it itself)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import math
-import socket
 import time
 
 import numpy as np
@@ -18,6 +17,7 @@ from ground.station import Limits, SourceLink, Station
 from ground.view import render_text
 from onboard.link import Link
 from onboard.vehicle import load_vehicle
+from conftest import free_udp_port
 
 
 def _packets(msgs, system=1, component=1):
@@ -176,16 +176,8 @@ def test_operator_commands_parse_to_standard_messages():
             parse_command(bad)
 
 
-def _free_port():
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 def test_view_keeps_running_through_garbage_truncation_and_link_loss():
-    port = _free_port()
+    port = free_udp_port()
     session = GroundSession(f"udpin:127.0.0.1:{port}", load_vehicle(), limits=Limits(link_timeout_s=0.3))
     tx = Link(f"udpout:127.0.0.1:{port}")
     try:
@@ -237,7 +229,7 @@ def test_view_keeps_running_through_garbage_truncation_and_link_loss():
 def test_ground_cli_once_prints_a_frame_and_rejects_bad_arguments(tmp_path, capsys):
     from ground.cli import main
 
-    port = _free_port()
+    port = free_udp_port()
     assert main(["ground", "--link", f"udpin:127.0.0.1:{port}", "--once", "--record", str(tmp_path)]) == 0
     out = capsys.readouterr()
     assert "[link]" in out.out and "link waiting" in out.out and "no link yet" in out.out

@@ -8,7 +8,6 @@ writes what it receives to its telemetry log; `mavlogdump.py` (pymavlink's tool)
 from __future__ import annotations
 
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -18,22 +17,15 @@ import pytest
 from onboard.link import Link
 from onboard.loop import LoopConfig, OnboardLoop, WallClock
 from onboard.vehicle import load_vehicle
+from conftest import free_udp_port
 
 pytestmark = pytest.mark.skipif(shutil.which("mavproxy.py") is None or shutil.which("mavlogdump.py") is None,
                                 reason="MAVProxy not installed (pip install '.[test]')")
 
 
-def _free_port():
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 @pytest.mark.slow  # MAVProxy takes ~15 s to start here
 def test_mavproxy_headless_sees_a_submarine_heartbeat_and_attitude(tmp_path):
-    port = _free_port()
+    port = free_udp_port()
     log = tmp_path / "mavproxy.tlog"
     proc = subprocess.Popen(
         [sys.executable, shutil.which("mavproxy.py"), f"--master=udpin:127.0.0.1:{port}", "--non-interactive",

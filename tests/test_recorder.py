@@ -4,7 +4,6 @@ at the full telemetry rate, and mavlogdump.py (pymavlink's own tool) reads the f
 from __future__ import annotations
 
 import shutil
-import socket
 import struct
 import subprocess
 import sys
@@ -17,6 +16,7 @@ from ground.ground_cli import GroundSession
 from ground.recorder import Recorder, RecorderError
 from ground.recording import read_recording
 from onboard.link import Link
+from conftest import free_udp_port
 
 
 def _att(i):
@@ -67,19 +67,11 @@ def test_rotation_by_size_never_splits_a_packet(tmp_path):
         Recorder(tmp_path, max_bytes=100)
 
 
-def _free_port():
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 @pytest.mark.skipif(shutil.which("mavlogdump.py") is None, reason="pymavlink's mavlogdump.py not on PATH")
 def test_full_rate_both_directions_no_loss_and_mavlogdump_reads_it(tmp_path):
     """The onboard loop's telemetry at its full rate: 100 Hz frames of 20 packets (2000 packets/s),
     each frame one datagram (onboard.link batch). Every packet must be in the .tlog, in order."""
-    port = _free_port()
+    port = free_udp_port()
     session = GroundSession(f"udpin:127.0.0.1:{port}", record_dir=tmp_path / "rec")
     tx = Link(f"udpout:127.0.0.1:{port}")
     frames, per_frame = 150, 20

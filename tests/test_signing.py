@@ -4,7 +4,6 @@ forged and replayed commands when signing is on and lets telemetry and everythin
 from __future__ import annotations
 
 import hashlib
-import socket
 import time
 
 import pytest
@@ -15,6 +14,7 @@ from onboard.signing import (SigningError, SigningState, accept_command, enable_
                              load_key, signing_timestamp)
 from ground.ground_cli import GroundSession
 from onboard.link import Link
+from conftest import free_udp_port
 
 KEY = hashlib.sha256(b"jetloop test passphrase").digest()  # MAVProxy's `signing setup` derivation
 
@@ -80,18 +80,10 @@ def test_signing_off_accepts_everything():
         SigningState(b"short")
 
 
-def _free_port():
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 def _command_seen_by_vehicle(key_ground):
     """A vehicle link (udpin) and a ground session (udpout) with or without the key; returns
     whether the vehicle's check accepts the ground's arm command."""
-    port = _free_port()
+    port = free_udp_port()
     vehicle = Link(f"udpin:127.0.0.1:{port}")
     ground = GroundSession(f"udpout:127.0.0.1:{port}", key=key_ground)
     state = SigningState(KEY)
@@ -159,7 +151,7 @@ def test_jetloop_onboard_with_a_key_file_answers_only_signed_commands(tmp_path):
 
     keyfile = tmp_path / "robot.key"
     keyfile.write_text(KEY.hex())
-    port = _free_port()
+    port = free_udp_port()
     proc = subprocess.Popen([sys.executable, "-m", "ground.cli", "onboard", "--link", f"udpin:127.0.0.1:{port}",
                              "--key", str(keyfile), "--realtime", "--duration", "90"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
