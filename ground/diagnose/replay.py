@@ -32,6 +32,7 @@ from numba import njit
 from scipy.signal import savgol_filter
 
 from onboard import model
+from onboard.jit import MODEL_SOURCE, key_caches_on
 from onboard.vehicle import Vehicle
 
 ATT_TAU_S = 1.0  # complementary-filter time constant: gyro above ~0.16 Hz, attitude below
@@ -446,7 +447,6 @@ def actuator_run(traj: Trajectory, p: np.ndarray, n_units: int, substeps: int = 
 @njit(cache=True)
 def _model_acc(pos, quat, nu, act, command, p, idx):
     m = idx.shape[0]
-    k = command.shape[1] // 3
     nx = 13 + act.shape[1]
     out = np.empty((m, 6))
     x = np.zeros(nx)
@@ -626,3 +626,6 @@ def _sparse_features(x, p, k, out):
     out[19] = 1.0 / max(p[model.P_FLOOR] - x[2], 0.05)
     for i in range(k):
         out[20 + i] = (x[13 + i] / p[model.P_NMAX]) ** 2
+
+
+key_caches_on(globals(), MODEL_SOURCE)
