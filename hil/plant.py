@@ -11,7 +11,7 @@ It owns no clock and no link: the open-loop simulator, the HIL endpoint and the 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -40,10 +40,6 @@ class Samples:
     pressure: list = field(default_factory=list)  # PressureSample
     attitude: list = field(default_factory=list)  # AttitudeSample
     truth: list = field(default_factory=list)  # TruthSample at the IMU instants
-
-    def extend(self, other: "Samples") -> None:
-        for name in ("imu", "pressure", "attitude", "truth"):
-            getattr(self, name).extend(getattr(other, name))
 
 
 class Plant:
@@ -87,7 +83,6 @@ class Plant:
         self._count = {name: 0 for name in STREAMS}
         self._delay_steps = int(round(s.delay / self.dt_s))
         self._pending: deque = deque()  # (emit_step, stream, sample) awaiting the sensor delay
-        self.thrust_n = np.zeros(k)
 
     # -- time --------------------------------------------------------------------------------
     @property
@@ -127,7 +122,7 @@ class Plant:
         if due:
             x = self.state
             xdot = np.zeros_like(x)
-            self.thrust_n = model.derivative(x, self.command, self.params, xdot)
+            model.derivative(x, self.command, self.params, xdot)  # xdot: the accelerometer's truth
             t = self.time_s
             for stream in due:
                 self._count[stream] += 1
@@ -138,7 +133,7 @@ class Plant:
         while self._pending and self._pending[0][0] <= self.step_index:
             _, stream, sample = self._pending.popleft()
             if self._delay_steps:
-                sample = _restamp(sample, self.time_s)
+                sample = replace(sample, time_s=self.time_s)
             getattr(out, stream).append(sample)
 
     def _measure(self, stream: str, t: float, x, xdot):
@@ -159,12 +154,6 @@ class Plant:
         """Commanded PWM (as given) and measured propeller rpm of each unit, now."""
         n = self.state[self.layout.n]
         return ActuatorSample(self.time_s, tuple(int(c) for c in pwm_us), tuple(float(r) for r in 60.0 * n))
-
-
-def _restamp(sample, t: float):
-    from dataclasses import replace
-
-    return replace(sample, time_s=t)
 
 
 __all__ = [
