@@ -16,7 +16,6 @@ packet rate). A panel with no data says so in the image and the page instead of 
 from __future__ import annotations
 
 import html
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
