@@ -308,7 +308,6 @@ class OnboardLoop:
         self._next_tick = None
         self._marker_t = -math.inf  # newest SYSTEM_TIME: the stream is complete up to it
         self._last_answer_us = -1
-        self._next_telemetry = -math.inf
         self._next_heartbeat = -math.inf
         self._was_enabled = False
         self._started = False
