@@ -263,7 +263,7 @@ class OnboardLoop:
                  estimator=None, controller=None):
         from . import failsafe
         from .allocation import AllocationConfig, PseudoInverseAllocator, QpAllocator
-        from .compensation import TransientCompensator
+        from .compensation import TransientCompensator, allocate_compensated
         from .control import Controller
         from .estimator import Estimator
 
@@ -283,6 +283,7 @@ class OnboardLoop:
         cls = QpAllocator if config.allocator == "qp" else PseudoInverseAllocator
         self.allocator = cls(vehicle, self.period_s, alloc_cfg)
         self.compensator = TransientCompensator(vehicle, self.period_s) if config.compensation else None
+        self._allocate_compensated = allocate_compensated  # imported here, not on every tick
         self._fs = failsafe
         self.fs_state = failsafe.FailsafeState(imu_timeout_s=config.imu_timeout_s)
         self.setpoint = Setpoint()
@@ -539,10 +540,8 @@ class OnboardLoop:
                 np.asarray(self.allocation.wrench_achieved) + self.prediction.wrench_n)
         self.demand = self.controller.step(est, self.setpoint, self.period_s, achieved=achieved).as_array()
         if self.compensator is not None:
-            from .compensation import allocate_compensated
-
-            res = allocate_compensated(self.allocator, self.compensator, self.demand, nu_r=est.nu,
-                                       iterations=self.config.compensation_iterations)
+            res = self._allocate_compensated(self.allocator, self.compensator, self.demand, nu_r=est.nu,
+                                             iterations=self.config.compensation_iterations)
             alloc, self.prediction = res.allocation, res.prediction
         else:
             alloc = self.allocator.allocate(self.demand, nu_r=est.nu)
