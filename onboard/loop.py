@@ -647,6 +647,16 @@ class OnboardLoop:
         if send["ATTITUDE"]:
             out.send(mavlink.MAVLink_attitude_message(ms, roll, pitch, yaw, p, q, r))
         a = self.allocation
+        if send["NAMED_VALUE_FLOAT"]:
+            self._named_values(out, ms, est, step_s)
+        if send["DEBUG_FLOAT_ARRAY"]:
+            data = list(self.demand) + (list(a.wrench_achieved) if a is not None else [0.0] * 6)
+            data = [float(x) if math.isfinite(x) else 0.0 for x in data] + [0.0] * (58 - len(data))
+            out.send(mavlink.MAVLink_debug_float_array_message(codec.time_usec(max(t, 0.0)), b"wrench", 1, data))
+
+    def _named_values(self, out, ms: int, est, step_s: float) -> None:
+        """NAMED_VALUE_FLOAT telemetry, built only on the ticks it is due (not every control tick)."""
+        a = self.allocation
         sp = self.setpoint
         st = self.stats
         recent = np.fromiter(islice(reversed(st.step_time_s), 100), float) * 1e3
@@ -669,12 +679,7 @@ class OnboardLoop:
             "link_bad": float(self.link.bad_packets + self.link.unknown_packets),
         }
         for name, value in values.items():
-            if send["NAMED_VALUE_FLOAT"]:
-                out.send(mavlink.MAVLink_named_value_float_message(ms, name.encode(), float(value)))
-        data = list(self.demand) + (list(a.wrench_achieved) if a is not None else [0.0] * 6)
-        data = [float(x) if math.isfinite(x) else 0.0 for x in data] + [0.0] * (58 - len(data))
-        if send["DEBUG_FLOAT_ARRAY"]:
-            out.send(mavlink.MAVLink_debug_float_array_message(codec.time_usec(max(t, 0.0)), b"wrench", 1, data))
+            out.send(mavlink.MAVLink_named_value_float_message(ms, name.encode(), float(value)))
 
     def _sys_status(self, step_s: float):
         S = mavlink
