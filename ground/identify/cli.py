@@ -254,6 +254,13 @@ def _pyplot():
     return plt
 
 
+def _save(fig, path):
+    """Lay out, write (110 dpi) and close a figure of one of the plots below."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    _pyplot().close(fig)
+
+
 def _need(args, *names):
     missing = [f"--{n.replace('_', '-')}" for n in names if getattr(args, n) is None]
     if missing:
@@ -343,9 +350,7 @@ def _plot_thrust(path, d, fit, rho, D):
     ax2.set_title("Residuals per condition, dashed: max (Figs. 24, 26)")
     ax2.legend(fontsize=7, ncol=2)
     ax2.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -495,9 +500,7 @@ def _plot_spring(path, d, f, mass, K):
     ax.set_title(f"Spring free decay (seed 001 Fig. 7): added mass {f.added_mass_kg:.3f} kg, C_m {f.cm:.3f}")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -565,9 +568,7 @@ def _plot_pendulum(path, d, f):
     ax.set_title(f"Pendulum free decay (seed 001): added mass {f.added_mass_kg:.4f} kg, C_D {f.cd:.3f}")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -684,9 +685,7 @@ def _plot_tables(path, lines, curves, full_depth, am=None, dp=None):
         ax.set_title(f"{dof} damping (seed 003 Figs. 8-9)")
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -806,9 +805,7 @@ def _plot_design(path, design):
     axes[2].set_title("(c) compressed input: an impulse")
     for ax in axes:
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def _plot_bode(path, fits, bodes, at, scale):
@@ -831,6 +828,4 @@ def _plot_bode(path, fits, bodes, at, scale):
         ax.set_ylabel("magnitude (dB)")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
