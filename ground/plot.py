@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.recording import RecordingError, read_recording
+from ground.recording import RecordingError, decode_message, read_recording, scan_packets
 
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 PANELS = ("attitude", "depth", "velocity", "jets", "joints", "allocation", "timing", "link")
@@ -44,17 +44,6 @@ class Extras:
     autopilot: int | None = None
 
 
-def _packet_index(path: Path):
-    """The .tlog packet scan of ground.recording (its compiled framing and bulk decoder)."""
-    from ground import recording as R
-
-    data = path.read_bytes()
-    buf = np.frombuffer(data, dtype=np.uint8)
-    ids, extra = R._crc_table()
-    off, plen, mid, src, ts, *_ = R._scan_tlog(buf, ids, extra)
-    return buf, off, plen, mid, src, ts
-
-
 def _seq(buf, off, plen, mid) -> np.ndarray:
     """Sequence number of each packet from its header (v2: 10-byte header, v1: 6)."""
     off = np.asarray(off)
@@ -68,10 +57,7 @@ def _seq(buf, off, plen, mid) -> np.ndarray:
 
 
 def read_extras(path: Path) -> Extras:
-    from ground import recording as R
-
-    d = R._dialect()
-    buf, off, plen, mid, src, ts = _packet_index(path)
+    buf, off, plen, mid, src, ts = scan_packets(path.read_bytes())
     ex = Extras()
     if len(off) == 0:
         return ex
@@ -85,11 +71,8 @@ def read_extras(path: Path) -> Extras:
         ex.link[(int(s) // 256, int(s) % 256)] = (t_log[sel], lost, np.arange(1, len(sel) + 1))
 
     def decode(name):
-        ident = getattr(d, f"MAVLINK_MSG_ID_{name}")
-        sel = mid == ident
-        if not sel.any():
-            return None, None
-        return R._decode_bulk(buf, off[sel], plen[sel], d.mavlink_map[ident]), t_log[sel]
+        a, sel = decode_message(buf, off, plen, mid, name)
+        return a, t_log[sel]
 
     hb, _ = decode("HEARTBEAT")
     if hb is not None:

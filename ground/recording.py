@@ -381,6 +381,25 @@ def _decode_bulk(buf: np.ndarray, offsets, lengths, cls) -> np.ndarray:
     return raw.view(dt).reshape(n)
 
 
+def scan_packets(data: bytes):
+    """The good packets of .tlog bytes, for readers of what read_recording does not keep:
+    (buf, payload offsets, payload lengths, message ids, sys*256+comp, log stamps in us)."""
+    buf = np.frombuffer(data, dtype=np.uint8)
+    off, plen, mid, src, ts, *_ = _scan_tlog(buf, *_crc_table())
+    return buf, off, plen, mid, src, ts
+
+
+def decode_message(buf, off, plen, mid, name: str):
+    """The packets of message NAME in a scan_packets() result, decoded in bulk, and their mask;
+    None for the array when there are none."""
+    d = _dialect()
+    ident = getattr(d, f"MAVLINK_MSG_ID_{name}")
+    sel = mid == ident
+    if not sel.any():
+        return None, sel
+    return _decode_bulk(buf, off[sel], plen[sel], d.mavlink_map[ident]), sel
+
+
 WANTED = ("HEARTBEAT", "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "SCALED_PRESSURE2",
           "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ESC_TELEMETRY_1_TO_4", "ATT_POS_MOCAP")
 
