@@ -462,7 +462,6 @@ class Estimator:
         self._H_gyro[:, X_RATES:X_RATES + 3] = np.eye(3)  # h = w + b_g
         self._H_gyro[:, X_BIAS:X_BIAS + 3] = np.eye(3)
         self._H_depth = np.zeros((1, N_X))
-        self._H_depth = np.zeros((1, N_X))
         self._H_depth[0, X_DEPTH] = 1.0  # h = depth
         self._H_imu = np.zeros((6, N_X))
         self._H_imu[0:3] = self._H_gyro
