@@ -55,7 +55,7 @@ from scipy.stats import chi2
 
 from . import model
 from .jit import MODEL_SOURCE, key_caches_on
-from .model import P_SURF, derivative, quat_to_euler, rk4_step, specific_force
+from .model import P_SURF, derivative, euler_to_quat, quat_to_euler, rk4_step, specific_force
 from .sensors import AttitudeSample, ImuSample
 from .vehicle import Vehicle
 
@@ -756,13 +756,8 @@ class Estimator:
 def _make_state(time_s: float, x, cov_diag, health: EstimatorHealth) -> EstimatedState:
     xs = np.asarray(x, dtype=float).tolist()
     phi, theta, psi = xs[0], xs[1], xs[2]
-    cr, sr = math.cos(phi / 2), math.sin(phi / 2)
-    cp, sp = math.cos(theta / 2), math.sin(theta / 2)
-    cy, sy = math.cos(psi / 2), math.sin(psi / 2)
-    q = (  # q = q_z(psi) q_y(theta) q_x(phi) (Fossen 2011 eq. 2.83)
-        cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
-    )
+    # q = q_z(psi) q_y(theta) q_x(phi) (Fossen 2011 eq. 2.83)
+    q = tuple(euler_to_quat(phi, theta, psi).tolist())
     u, v, w = xs[9], xs[10], xs[11]
     # z' = R[2, :] v = -s(theta) u + c(theta) s(phi) v + c(theta) c(phi) w (Fossen 2011 eq. 2.18)
     zdot = -math.sin(theta) * u + math.cos(theta) * math.sin(phi) * v + math.cos(theta) * math.cos(phi) * w
