@@ -155,7 +155,7 @@ def _rig_run(x, commands, p, dt, sub, unit, out):
     h = dt / sub
     nu_r = np.zeros(6)
     o = model.P_UNITS + 6 * unit
-    rx, ry, rz = p[o], p[o + 1], p[o + 2]
+    rx, ry = p[o], p[o + 1]
     for s in range(commands.shape[0]):
         u = commands[s]
         # measure at the start of the sample
@@ -372,7 +372,6 @@ def fit_row(row: str, bode: BodeMagnitude, prior, gain_scale: float = 1.0, start
 
     rng = np.random.default_rng(seed)
     p0 = np.log(prior[1:])
-    k0 = math.log(prior[0] * gain_scale)
     # each coefficient stays within a factor `bound` of the prior: a zero or pole beyond the band
     # is otherwise free to run off while the product with K stays put
     lo = np.concatenate([[-60.0], p0 - math.log(bound)])
