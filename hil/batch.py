@@ -148,7 +148,7 @@ def _check(states, commands, params, dt_s, n_steps):
     k = _units_of_state(nx)
     if k < 1:
         raise ValueError(
-            f"states: {nx} values per vehicle is not a state vector (expected 13 + 23 k, e.g. "
+            f"states: {nx} values per vehicle is not a state vector (expected 13 + {3 + model.N_TF_STATES} k, e.g. "
             f"{model.StateLayout(4).size} for 4 units)"
         )
     p = _float_array("params", params, 2, "(N, np)")
