@@ -47,7 +47,7 @@ from numba import njit
 
 from . import model
 from .jit import MODEL_SOURCE, key_caches_on
-from .estimator import EstimatedState
+from .estimator import EstimatedState, _wrap  # angle in [-pi, pi)
 from .vehicle import Vehicle
 
 
@@ -190,10 +190,6 @@ def axis_capacity(vehicle: Vehicle) -> np.ndarray:
     k = vehicle.n_units
     r = max(math.sqrt(sum(c * c for c in u.position)) for u in vehicle.units)
     return np.array([k * t_max] * 3 + [0.5 * k * t_max * r] * 3)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 # ------------------------------------------------------------------------------------------------
