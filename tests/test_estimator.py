@@ -218,7 +218,7 @@ def test_outlier_burst_is_gated_and_the_ungated_filter_is_not(vehicle):
 def test_persistent_disagreement_is_flagged_as_divergence(vehicle):
     plant, est, u = _converged(vehicle, seed=9)
     assert not est.health.diverged
-    log = fly(plant, est, u, 5.0, tamper=lambda s, v: v + 1.5 if s == "depth" else v)  # 50 Hz, 2 s
+    fly(plant, est, u, 5.0, tamper=lambda s, v: v + 1.5 if s == "depth" else v)  # 50 Hz, 2 s
     h = est.health
     assert h.diverged and "depth" in h.diverged_reason and "consecutive" in h.diverged_reason
     assert h.rejected_gated[STREAMS.index("depth")] >= est.tuning.max_consecutive_rejections
