@@ -18,7 +18,6 @@ class StreamRates:
         self.default_hz = {k.upper(): float(v) for k, v in default_hz.items()}
         self.rate_hz = dict(self.default_hz)
         self._next: dict = {}
-        self._names = {}
 
     def handle(self, msg):
         if msg.get_type() != "COMMAND_LONG" or int(msg.command) != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
