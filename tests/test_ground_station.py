@@ -383,3 +383,11 @@ def test_delay_jitter_is_measured_against_a_sliding_minimum():
         (m,) = _packets([mavlink.MAVLink_attitude_message(200 + 1000 * k, 0, 0, 0, 0, 0, 0)])
         st.update(m, 100.5 + k * 1.0 + 0.5)  # offset 100.8 from here on
     assert st.delay_jitter_s == pytest.approx(0.0, abs=1e-9)
+
+
+def test_station_mode_names_are_the_onboard_loops():
+    """ground.station keeps its own copy (importing onboard.loop costs seconds of numba); it must agree."""
+    from ground.station import MODE_NAMES
+    from onboard.loop import MODE_NAMES as ONBOARD_MODE_NAMES
+
+    assert MODE_NAMES == ONBOARD_MODE_NAMES
