@@ -33,6 +33,7 @@ from scipy.signal import savgol_filter
 
 from onboard import model
 from onboard.jit import MODEL_SOURCE, key_caches_on
+from onboard.pwm import pwm_to_command
 from onboard.vehicle import Vehicle
 
 ATT_TAU_S = 1.0  # complementary-filter time constant: gyro above ~0.16 Hz, attitude below
@@ -126,18 +127,12 @@ def grid_for(rec) -> tuple[np.ndarray, float]:
 
 
 def pwm_to_commands(vehicle: Vehicle, pwm_us: np.ndarray) -> np.ndarray:
-    """`onboard.pwm.pwm_to_command` for every row of an (N, 16) PWM array (the same linear maps)."""
-    pwm = np.asarray(pwm_us, float)
-    jlo, jhi = vehicle.pwm.jet_range
-    slo, shi = vehicle.pwm.servo_range
-    lim = vehicle.servo.angle_limit
-    jets = pwm[:, np.array(vehicle.pwm.jet_channels) - 1]
-    az = pwm[:, np.array(vehicle.pwm.azimuth_channels) - 1]
-    el = pwm[:, np.array(vehicle.pwm.elevation_channels) - 1]
-    n = np.clip((jets - jlo) / (jhi - jlo), 0.0, 1.0) * vehicle.thruster.n_max
-    a = np.clip((az - slo) / (shi - slo) * 2.0 - 1.0, -1.0, 1.0) * lim
-    b = np.clip((el - slo) / (shi - slo) * 2.0 - 1.0, -1.0, 1.0) * lim
-    return np.concatenate([n, a, b], axis=1)
+    """`onboard.pwm.pwm_to_command` for every row of an (N, 16) PWM array.
+
+    Its maps are element-wise and pick channels on the first axis, so the transposed (16, N)
+    array goes through it whole and comes back (3k, N).
+    """
+    return pwm_to_command(vehicle, np.asarray(pwm_us, float).T).T
 
 
 def held_commands(rec, vehicle: Vehicle, t_grid) -> np.ndarray:
