@@ -201,6 +201,8 @@ class TransientCompensator:
         self.Ad = np.ascontiguousarray(np.stack([m[0] for m in mats]))  # (5, 4, 4)
         self.Bd = np.ascontiguousarray(np.stack([m[1] for m in mats]))  # (5, 4)
         self.Cd = np.ascontiguousarray(np.stack([m[2] for m in mats]))  # (5, 4)
+        # free response y = (C z0 + C Ad z0) / 2 = C_free z0: the fixed row map, formed once here
+        self._C_free = 0.5 * (self.Cd + np.einsum("rj,rjm->rm", self.Cd, self.Ad))  # (5, 4)
         s = v.servo
         self.servo = (s.time_constant, s.rate_limit, s.angle_limit)
         self.reset(alpha_rad, beta_rad)
@@ -256,10 +258,7 @@ class TransientCompensator:
         """
         if not self.active:
             return np.zeros((self.k, len(ROWS)))
-        z0 = self.state
-        y0 = np.einsum("rj,irj->ir", self.Cd, z0)
-        y1 = np.einsum("rj,rjm,irm->ir", self.Cd, self.Ad, z0)
-        return 0.5 * (y0 + y1)
+        return np.einsum("rm,irm->ir", self._C_free, self.state)
 
     def rows_wrench(self, rows, thrust_n, alpha_rad=None, beta_rad=None, weights=None) -> np.ndarray:
         """Spec-4.1 transient wrench of row outputs `rows` (k x 5) at thrust T and joint angles
