@@ -58,8 +58,9 @@ def test_rotation_by_size_never_splits_a_packet(tmp_path):
     with Recorder(tmp_path, max_bytes=max_bytes, clock=lambda: 1.7e9) as rec:
         for p in pk:
             rec.record(p, "ATTITUDE")
-    assert len(rec.files) == 5  # 100 / 20
-    assert all(f.stat().st_size == 960 for f in rec.files)
+    per_file = max_bytes // size  # 20 records fit (960 bytes), a 21st would make 1008
+    assert len(rec.files) == len(pk) // per_file  # 100 / 20 = 5
+    assert all(f.stat().st_size == per_file * size for f in rec.files)
     joined = [p for f in rec.files for _, p in _split_tlog(f.read_bytes())]
     assert joined == pk
     assert [f.name[-9:] for f in rec.files] == ["-000.tlog", "-001.tlog", "-002.tlog", "-003.tlog", "-004.tlog"]
