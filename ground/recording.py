@@ -406,11 +406,11 @@ WANTED = ("HEARTBEAT", "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "S
 
 def _log_clock_offset(decoded, ts, use, mid, name_to_id):
     """Median (logger time - vehicle time) in s over a stream that carries vehicle time, or None."""
-    for name, field, scale in (("HIGHRES_IMU", "time_usec", 1e-6), ("SCALED_PRESSURE2", "time_boot_ms", 1e-3),
+    for name, clock, scale in (("HIGHRES_IMU", "time_usec", 1e-6), ("SCALED_PRESSURE2", "time_boot_ms", 1e-3),
                                ("ATTITUDE", "time_boot_ms", 1e-3), ("SCALED_IMU2", "time_boot_ms", 1e-3)):
         if name in decoded and len(decoded[name]):
             t_log = ts[use & (mid == name_to_id[name])].astype(np.float64) / 1e6
-            t_vehicle = np.asarray(decoded[name][field], np.float64) * scale
+            t_vehicle = np.asarray(decoded[name][clock], np.float64) * scale
             return float(np.median(t_log - t_vehicle))
     return None
 
