@@ -153,7 +153,7 @@ def test_servo_output_carries_the_csv_pwm(runs):
         got = [getattr(m, f"servo{c}_raw") for c in range(1, 17)]
         assert got == ROWS[row][1] + [0, 0, 0, 0], m.time_usec
         n += 1
-    assert n == 32
+    assert n == held_messages([t for t, _ in ROWS]) == 32
 
 
 def test_esc_rpm_follows_the_first_order_motor_lag(runs):
@@ -169,7 +169,7 @@ def test_esc_rpm_follows_the_first_order_motor_lag(runs):
         rpm = 0.0 if t < 1.0 else 60 * n_cmd * (1 - math.exp(-(t - 1.0) / tau))  # n' = (n_cmd - n)/tau
         assert list(m.rpm) == pytest.approx([rpm] * 4, abs=1.0), t  # the field is an integer rpm
         checked += 1
-    assert checked == 32
+    assert checked == held_messages([t for t, _ in ROWS]) == 32
 
 
 def test_pressure_depth_matches_truth_within_the_pressure_noise(runs):
@@ -184,7 +184,7 @@ def test_pressure_depth_matches_truth_within_the_pressure_noise(runs):
             res.append(depth - (z_at[m.time_boot_ms] - env.surface_depth))
     res = np.array(res)
     sigma = v.sensors.pressure_noise / (env.rho * env.g)  # 20 Pa -> 2.04 mm
-    assert len(res) == 61
+    assert len(res) == int(ROWS[-1][0] * RATES["pressure_rate"]) + 1 == 61  # 20 Hz over 3 s, both ends
     assert np.max(np.abs(res)) < 5 * sigma
     assert abs(res.mean()) < 4 * sigma / math.sqrt(len(res))
     assert 0.6 * sigma < res.std() < 1.4 * sigma
