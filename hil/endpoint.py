@@ -262,10 +262,9 @@ class HilEndpoint:
                 self.stats.bad_commands += 1
                 return
             self._apply(normalised_to_command(self.vehicle, controls), stamp, t)
-        elif name == "SERVO_OUTPUT_RAW":
+        elif name == "SERVO_OUTPUT_RAW" and self.actuators == "pwm":
             pwm = [getattr(m, f"servo{i}_raw", 0) or 0 for i in range(1, 17)]
-            if self.actuators == "pwm":
-                self._apply(pwm_to_command(self.vehicle, pwm), self._unwrap(int(m.time_usec), t), t)
+            self._apply(pwm_to_command(self.vehicle, pwm), self._unwrap(int(m.time_usec), t), t)
 
     def _unwrap(self, stamp32: int, t: float) -> int:
         now = codec.time_usec(t)
