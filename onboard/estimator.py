@@ -649,27 +649,23 @@ class Estimator:
                 self._rej_gated[k] += 1
                 self._consecutive[k] += 1  # (the NIS average sees accepted samples only)
             else:
-                keep.append((k, z, H, hx, R, y))
+                keep.append((k, z, H, hx, R))
                 self._accepted[k] += 1
                 self._consecutive[k] = 0
                 self._nis_push(k, d2 / m)
         if keep:
             if len(keep) == 1:
-                _, z, H, hx, R, y = keep[0]
+                _, z, H, hx, R = keep[0]
             else:
                 z = np.concatenate([p[1] for p in keep])
                 H = np.vstack([p[2] for p in keep])
                 hx = np.concatenate([p[3] for p in keep])
                 R = _block_diag([p[4] for p in keep])
             att = any(p[0] == _ATT for p in keep)
-            if self._compiled:
-                y = np.concatenate([p[5] for p in keep])  # already wrapped
-                ekf.x, ekf.P = _joseph_update(ekf.x, ekf.P, H, R, y)
-            else:
-                ekf.update(
-                    z, lambda _x: H, lambda _x: hx, R=R,
-                    residual=_attitude_residual if att else np.subtract,
-                )  # K = P H^T S^-1; x += K y; P = (I - K H) P (I - K H)^T + K R K^T (Joseph)
+            ekf.update(
+                z, lambda _x: H, lambda _x: hx, R=R,
+                residual=_attitude_residual if att else np.subtract,
+            )  # K = P H^T S^-1; x += K y; P = (I - K H) P (I - K H)^T + K R K^T (Joseph)
             ekf.x[X_EULER + 2] = _wrap(ekf.x[X_EULER + 2])
             _embed(ekf.x, self._full, self.params[P_SURF])
         self._check_divergence()
