@@ -459,7 +459,9 @@ def test_the_recording_reads_as_the_vehicle_with_commands_at_their_times(dives):
     rec = read_recording(r.tlog)
     assert rec.vehicle_id == (1, 1)
     assert rec.imu is not None and rec.pressure is not None and rec.servo is not None
-    assert len(rec.imu.time_s) == 150 and len(rec.pressure.time_s) == 75
+    # 1.5 s of flight at the vehicle's sensor rates (100 Hz IMU: 150, 50 Hz pressure: 75)
+    assert len(rec.imu.time_s) == round(1.5 * V.sensors.imu_rate)
+    assert len(rec.pressure.time_s) == round(1.5 * V.sensors.pressure_rate)
     assert not rec.skipped.non_monotonic
     applied = {round(t * 1e3): command_to_pwm(V, c) for t, c in r.commands}
     assert len(rec.servo.time_s) == 149  # one per frame, after the first command
