@@ -137,15 +137,12 @@ class Recording:
         import dataclasses
 
         def cut(stream):
-            if stream is None:
-                return None
             sel = (stream.time_s >= t0_s) & (stream.time_s < t1_s)
             return dataclasses.replace(stream, **{
                 f.name: _frozen(getattr(stream, f.name)[sel]) for f in dataclasses.fields(stream)
                 if isinstance(getattr(stream, f.name), np.ndarray)})
 
-        return dataclasses.replace(self, **{n: cut(getattr(self, n)) for n in
-                                            ("imu", "pressure", "servo", "attitude", "esc", "mocap")})
+        return dataclasses.replace(self, **{n: cut(s) for n, s in self.streams.items()})
 
     def summary(self) -> dict:
         """The `recording` block of the diagnosis report (spec/recording.md section 2)."""
