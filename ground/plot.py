@@ -15,6 +15,7 @@ packet rate). A panel with no data says so in the image and the page instead of 
 
 from __future__ import annotations
 
+import functools
 import html
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -152,6 +153,13 @@ def make_plots(path, out_dir, vehicle=None) -> dict:
         plt.close(fig)
         notes[name] = note or ""
 
+    @functools.cache
+    def servo_commands():
+        """Commands of every SERVO_OUTPUT_RAW row through the [pwm] maps (jets and joints share them)."""
+        from onboard.pwm import pwm_to_command
+
+        return np.array([pwm_to_command(vehicle, row) for row in rec.servo.pwm_us])
+
     def attitude(ax):
         a = rec.attitude
         if a is None or not len(a.time_s):
@@ -211,11 +219,10 @@ def make_plots(path, out_dir, vehicle=None) -> dict:
             ax.set_ylabel("PWM (us)")
             return None
         from onboard.model import jet_thrust, pack_params
-        from onboard.pwm import pwm_to_command
 
         p = pack_params(vehicle)
         k = vehicle.n_units
-        u = np.array([pwm_to_command(vehicle, row) for row in s.pwm_us])
+        u = servo_commands()
         for i in range(k):
             thrust = [jet_thrust(float(n), 0.0, p) for n in u[:, i]]
             ax.plot(s.time_s, thrust, label=f"jet {i + 1}", lw=0.8)
@@ -227,10 +234,8 @@ def make_plots(path, out_dir, vehicle=None) -> dict:
             return "no actuator output in this recording (no SERVO_OUTPUT_RAW / RCOU)"
         if ardupilot:
             return "no jet joints: an ArduPilot vehicle with fixed thrusters (see jets.png for PWM)"
-        from onboard.pwm import pwm_to_command
-
         k = vehicle.n_units
-        u = np.array([pwm_to_command(vehicle, row) for row in s.pwm_us])
+        u = servo_commands()
         for i in range(k):
             ax.plot(s.time_s, np.degrees(u[:, k + i]), label=f"azimuth {i + 1}", lw=0.8)
             ax.plot(s.time_s, np.degrees(u[:, 2 * k + i]), "--", label=f"elevation {i + 1}", lw=0.8)
