@@ -26,6 +26,8 @@ import numpy as np
 
 from onboard.vehicle import VehicleFileError, fragment_toml, load_vehicle
 
+from .tables import DOFS
+
 METHODS = ("thrust", "free-decay", "pendulum", "tables", "azimuth")
 AXES = ("surge", "sway", "heave")
 
@@ -405,7 +407,7 @@ def _write_tlog_depth(path, t, press_pa) -> None:
 
 
 def _hydro_fragment(vehicle, axis: str, added=None, k_l=None, k_q=None) -> dict:
-    i = ("surge", "sway", "heave").index(axis)
+    i = AXES.index(axis)
     out = {}
     for key, val in (("hydro.added_mass", added), ("hydro.linear_damping", k_l),
                      ("hydro.quadratic_damping", k_q)):
@@ -626,7 +628,7 @@ def _table_examples(vehicle, seed: int):
     am = {"attitude": [], "depth": [], "dof": [], "added_mass": []}
     for att_deg, shrink in ((0.0, 1.0), (15.0, 0.85), (30.0, 0.7)):
         for dof in ("surge", "heave", "pitch"):
-            full = ma[("surge", "sway", "heave", "roll", "pitch", "yaw").index(dof)] * shrink
+            full = ma[DOFS.index(dof)] * shrink
             for depth in np.linspace(0.2 * R2, R2, 6):
                 val = full * (0.1 + 0.9 * depth / R2) * (1 + 0.01 * rng.standard_normal())
                 am["attitude"].append(math.radians(att_deg))
@@ -636,7 +638,7 @@ def _table_examples(vehicle, seed: int):
     dp = {"attitude": [], "dof": [], "speed": [], "force": []}
     for dof, speeds in (("surge", (0.2, 0.4, 0.6, 0.8, 1.0)), ("heave", (0.2, 0.4, 0.6, 0.8, 1.0)),
                         ("yaw", (1.0, 2.0, 3.0, 4.0, 5.0))):
-        i = ("surge", "sway", "heave", "roll", "pitch", "yaw").index(dof)
+        i = DOFS.index(dof)
         atts = (0.0, 10.0, 20.0, 30.0, 40.0) if dof == "surge" else (0.0,)
         for att_deg in atts:
             grow = 1 + 0.01 * att_deg
@@ -651,8 +653,8 @@ def _table_examples(vehicle, seed: int):
 
 def _plot_tables(path, lines, curves, full_depth, am=None, dp=None):
     plt = _pyplot()
-    dofs_l = sorted({ln.dof for ln in lines}, key=lambda d: ("surge", "sway", "heave", "roll", "pitch", "yaw").index(d))
-    dofs_c = sorted({c.dof for c in curves}, key=lambda d: ("surge", "sway", "heave", "roll", "pitch", "yaw").index(d))
+    dofs_l = sorted({ln.dof for ln in lines}, key=lambda d: DOFS.index(d))
+    dofs_c = sorted({c.dof for c in curves}, key=lambda d: DOFS.index(d))
     n = max(len(dofs_l) + len(dofs_c), 1)
     cols = min(n, 3)
     nrow = (n + cols - 1) // cols
