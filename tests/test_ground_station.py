@@ -60,7 +60,8 @@ def test_station_counts_packets_a_sender_dropped_per_source():
     for m in other:
         st.update(m, 2.0)
     snap = st.snapshot(2.0)
-    assert st.sources[(1, 1)].lost == 3 and st.sources[(1, 1)].received == 17
+    assert st.sources[(1, 1)].lost == len(dropped) == 3
+    assert st.sources[(1, 1)].received == len(pk) - len(dropped) == 17
     assert st.sources[(2, 1)].lost == 0
     assert snap.lost == 3
     assert snap.loss_fraction == pytest.approx(3 / (17 + 5 + 3))
@@ -355,6 +356,8 @@ def test_serial_57600_with_requested_rates_loses_nothing(tmp_path):
     assert radio.dropped == [0, 0]
     assert st.sources[(1, 1)].lost == 0 and st.bad_packets == 0 and st.garbage_bytes == 0
     # 3 s at the asked rates (the first due at t = 0): 5 Hz -> 15, 1 Hz -> 3
+    for name in ("ATTITUDE", "SERVO_OUTPUT_RAW", "DEBUG_FLOAT_ARRAY"):
+        assert counts[name] == round(3.0 * rates[name]), name
     assert counts["ATTITUDE"] == 15 and counts["SERVO_OUTPUT_RAW"] == 15
     assert counts["DEBUG_FLOAT_ARRAY"] == 3
     assert radio.carried[0] / 3.0 < _Radio.BYTES_PER_S  # the radio was never saturated
