@@ -33,6 +33,8 @@ from onboard import mavlink_codec as codec
 from onboard.pwm import command_to_pwm, normalised_to_command, pwm_to_command
 from onboard.vehicle import Vehicle
 
+from .tlog import FIXED_EPOCH_US
+
 GCS_SYSTEM = 255
 GCS_COMPONENT = 190
 SERVO_TIME_WRAP = 1 << 32
@@ -120,8 +122,6 @@ class HilEndpoint:
         return self.k * self.period_s
 
     def _stamp_us(self, t_s: float) -> int:
-        from hil.tlog import FIXED_EPOCH_US
-
         return FIXED_EPOCH_US + int(round(t_s * 1e6))
 
     # -- recording -----------------------------------------------------------------------------
