@@ -375,14 +375,7 @@ def _control_law(p, est, nu, ref, gv, cap, sat, sat_dir, ints, dt, flags):
     surge_on, sway_on, heave_on = ref[10] > 0.5, ref[11] > 0.5, ref[12] > 0.5
     w_z, w_a, w_y, w_v, zeta, share = gv[0], gv[1], gv[2], gv[3], gv[4], gv[5]
     # ---- kinematics ------------------------------------------------------------------------
-    q = np.empty(4)
-    cr, sr = math.cos(phi / 2), math.sin(phi / 2)
-    cp, sp = math.cos(theta / 2), math.sin(theta / 2)
-    cy, sy = math.cos(psi / 2), math.sin(psi / 2)
-    q[0] = cr * cp * cy + sr * sp * sy  # q = q_z(psi) q_y(theta) q_x(phi)
-    q[1] = sr * cp * cy - cr * sp * sy
-    q[2] = cr * sp * cy + sr * cp * sy
-    q[3] = cr * cp * sy - sr * sp * cy
+    q = model.euler_to_quat(phi, theta, psi)
     R = model.rotation(q)  # body -> NED
     e3b = np.array([R[2, 0], R[2, 1], R[2, 2]])  # R^T [0, 0, 1]
     # body rates of the level reference turning at psi_r': w_r = T^-1(phi, theta) [0, 0, psi_r']

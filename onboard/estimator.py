@@ -153,18 +153,10 @@ class EstimatorTuning:
 @njit(cache=True)
 def _embed(xr, full, surface):
     """Full model state with the rigid-body part taken from the filter state xr (in place)."""
-    phi, theta, psi = xr[0], xr[1], xr[2]
-    cr, sr = math.cos(phi / 2), math.sin(phi / 2)
-    cp, sp = math.cos(theta / 2), math.sin(theta / 2)
-    cy, sy = math.cos(psi / 2), math.sin(psi / 2)
     full[0] = 0.0
     full[1] = 0.0
     full[2] = surface + xr[12]
-    # q = q_z(psi) q_y(theta) q_x(phi) (Fossen 2011 eq. 2.83)
-    full[3] = cr * cp * cy + sr * sp * sy
-    full[4] = sr * cp * cy - cr * sp * sy
-    full[5] = cr * sp * cy + sr * cp * sy
-    full[6] = cr * cp * sy - sr * sp * cy
+    full[3:7] = model.euler_to_quat(xr[0], xr[1], xr[2])
     for i in range(3):
         full[7 + i] = xr[9 + i]  # u, v, w
         full[10 + i] = xr[3 + i]  # p, q, r

@@ -17,14 +17,7 @@ MODEL_SOURCE = Path(__file__).with_name("model.py")
 
 
 def cache_keyed_on(dispatcher, *sources: Path) -> None:
-    """Cache `dispatcher` on disk, invalid once its own file or any of `sources` changes.
-
-    numba's `cache=True` checks only the file of the function it compiles, but the kernel above
-    compiles `model.rk4_step` into itself: after an edit of onboard/model.py a plain cached kernel
-    would go on running the old physics. Here the cache's source stamp also holds the hashes of
-    `sources`. If numba's caching internals move, the kernel is simply not cached (compiled once
-    per process), never stale.
-    """
+    """Cache `dispatcher` on disk, invalid once its own file or any of `sources` changes."""
     try:
         from numba.core.caching import CompileResultCacheImpl, FunctionCache
 
