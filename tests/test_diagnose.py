@@ -227,3 +227,13 @@ def test_simulated_features_equal_the_library(quiet_session):
         x = np.concatenate([traj.pos_ned_m[i], traj.quat[i], traj.nu[i], act[i]])
         replay._sparse_features(x, p, 4, out)
         assert out == pytest.approx(X[i], rel=1e-9, abs=1e-12)
+
+
+def test_row_wise_attitude_helpers_equal_the_model():
+    """The replay's vectorised quaternion/Euler/rotation helpers are twins of onboard.model's."""
+    rng = np.random.default_rng(11)
+    e = np.column_stack([rng.uniform(-1.2, 1.2, 50), rng.uniform(-1.2, 1.2, 50), rng.uniform(-3.1, 3.1, 50)])
+    q = replay._euler_to_quat_rows(e)
+    np.testing.assert_allclose(q, [model.euler_to_quat(*row) for row in e], atol=1e-14)
+    np.testing.assert_allclose(replay._quat_to_euler_rows(q), [model.quat_to_euler(row) for row in q], atol=1e-12)
+    np.testing.assert_allclose(replay.rotation_rows(q), [model.rotation(row) for row in q], atol=1e-14)
