@@ -16,6 +16,8 @@ Conventions (spec/recording.md section 1):
 - Propeller rpm travels in ESC_TELEMETRY_1_TO_4 (ardupilotmega; units 1-4, then 5_TO_8, ...):
   the pymavlink dialects (2.4.50) have no ESC_STATUS, and ArduSub itself sends its rpm this way.
   `decode_rpm` reads ESC_STATUS too, when a dialect has it.
+- Joint angle feedback (smart servos) travels in ACTUATOR_OUTPUT_STATUS: `active` = bitmask of
+  the 2k joints, actuator[0:k] = azimuths, actuator[k:2k] = elevations (rad).
 - Decoding rejects NaN / inf (a sensor reading nothing is not a reading) with `CodecError`,
   naming the message and field; so does encoding.
 """
@@ -34,6 +36,7 @@ G0_M_S2 = 9.80665  # standard gravity: the "G" of the mG unit of SCALED_IMU / RA
 N_SERVO_CHANNELS = 16
 HIGHRES_IMU_ACCEL_GYRO = 0b111111  # fields_updated bits 0-5: xacc..zgyro are valid
 ESC_GROUPS = ("ESC_TELEMETRY_1_TO_4", "ESC_TELEMETRY_5_TO_8", "ESC_TELEMETRY_9_TO_12")
+N_ACTUATOR_STATUS = 32  # ACTUATOR_OUTPUT_STATUS.actuator[32]: joint angle feedback
 
 
 class CodecError(ValueError):
@@ -141,6 +144,23 @@ def encode_actuators(s: ActuatorSample) -> list:
     return out
 
 
+def encode_joint_angles(t_s: float, alpha_rad, beta_rad) -> mavlink2.MAVLink_actuator_output_status_message:
+    """Measured joint angles -> ACTUATOR_OUTPUT_STATUS (smart servos report their position).
+
+    With k units: `active` = (1 << 2k) - 1, actuator[0:k] = azimuths alpha (rad),
+    actuator[k:2k] = elevations beta (rad), the rest 0; time_usec = sample time.
+    """
+    a = _finite_all("ACTUATOR_OUTPUT_STATUS", [f"alpha[{i}]" for i in range(len(alpha_rad))], alpha_rad)
+    b = _finite_all("ACTUATOR_OUTPUT_STATUS", [f"beta[{i}]" for i in range(len(beta_rad))], beta_rad)
+    k = len(a)
+    if len(b) != k:
+        raise CodecError(f"ACTUATOR_OUTPUT_STATUS: {k} azimuths but {len(b)} elevations")
+    if 2 * k > N_ACTUATOR_STATUS:
+        raise CodecError(f"ACTUATOR_OUTPUT_STATUS carries {N_ACTUATOR_STATUS} values, {k} units need {2 * k}")
+    values = list(a) + list(b) + [0.0] * (N_ACTUATOR_STATUS - 2 * k)
+    return mavlink2.MAVLink_actuator_output_status_message(time_usec(t_s), (1 << (2 * k)) - 1, values)
+
+
 # --- message -> domain sample -----------------------------------------------------------------
 
 def decode_imu(msg) -> ImuSample:
@@ -212,6 +232,25 @@ def decode_actuators(servo_msg, esc_msgs=(), n_units: int = 4) -> ActuatorSample
     while covered < n_units and covered in rpm:
         covered += 1
     return ActuatorSample(servo_msg.time_usec / 1e6, pwm, tuple(rpm[i] for i in range(covered)))
+
+
+def decode_joint_angles(msg, n_units: int) -> tuple[float, tuple, tuple]:
+    """ACTUATOR_OUTPUT_STATUS -> (t_s, azimuths alpha (rad) x n_units, elevations beta x n_units).
+
+    Rejects another message, an `active` mask missing one of the 2 n_units joints, and NaN/inf.
+    """
+    name = msg.get_type()
+    if name != "ACTUATOR_OUTPUT_STATUS":
+        raise CodecError(f"{name} is not ACTUATOR_OUTPUT_STATUS")
+    k = int(n_units)
+    if not 0 < 2 * k <= N_ACTUATOR_STATUS:
+        raise CodecError(f"ACTUATOR_OUTPUT_STATUS carries 1..{N_ACTUATOR_STATUS // 2} units, asked for {n_units}")
+    need = (1 << (2 * k)) - 1
+    if (int(msg.active) & need) != need:
+        raise CodecError(f"ACTUATOR_OUTPUT_STATUS.active = {int(msg.active):#x} lacks joints of {k} units "
+                         f"(expected bits {need:#x})")
+    v = _finite_all(name, [f"actuator[{i}]" for i in range(2 * k)], tuple(msg.actuator)[:2 * k])
+    return msg.time_usec / 1e6, v[:k], v[k:]
 
 
 def decode(msg):
