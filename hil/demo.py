@@ -143,6 +143,7 @@ def _onboard_main(vehicle, link, ground, config, stop, results):
         loop.run(stop=stop.is_set)
         summary = loop.stats.summary()
         summary["link"] = link.stats()
+        summary["ground_link"] = ground.stats()  # what the telemetry recorder should have got
         summary["estimator_rejected"] = int(loop.estimator.health.rejected_total)
         results.put(("onboard", summary))
     except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the parent says so
@@ -203,8 +204,16 @@ def run_closed_loop(
     start_timeout_s: float = 300.0,
     progress=None,
     frame_period_s: float | None = None,
+    history: bool = True,
+    on_period=None,
+    on_start=None,
 ) -> ClosedLoopResult:
-    """Plant + onboard + recorder over loopback UDP in lock-step; returns what happened."""
+    """Plant + onboard + recorder over loopback UDP in lock-step; returns what happened.
+
+    `history=False`: the endpoint keeps no truth/command lists (long runs); `on_period(endpoint)`
+    runs after every period; `on_start({"onboard": pid, "recorder": pid})` once the parties run
+    (empty with threads). Both are for soaks (hil.soak).
+    """
     use_fork = processes and "fork" in mp.get_all_start_methods()
     ctx = mp.get_context("fork") if use_fork else None
     ep_link = Link("udpin:127.0.0.1:0", source_system=1, source_component=1)
@@ -230,6 +239,8 @@ def run_closed_loop(
     ]
     for p in parties:
         p.start()
+    if on_start is not None:
+        on_start({"recorder": parties[0].pid, "onboard": parties[1].pid} if use_fork else {})
     if use_fork:  # the children own these now
         ob_link.close()
         gnd_link.close()
@@ -240,7 +251,8 @@ def run_closed_loop(
     plant = Plant(vehicle, dt_s=0.001, seed=seed, depth_m=depth_m)
     frame_s = frame_period_s if frame_period_s is not None else 1.0 / config.control_rate_hz
     ep = HilEndpoint(vehicle, ep_link, plant, control_period_s=frame_s, lockstep=True,
-                     setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=30.0)
+                     setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=30.0,
+                     history=history, on_period=on_period)
     got: dict = {}
     wall0 = time.perf_counter()
     finished = False
