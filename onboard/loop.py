@@ -222,6 +222,9 @@ class LoopStats:
     step_errors: int = 0  # steps where a collaborator raised: the jets got the safe command
     ignored_imu: int = 0  # IMU messages of a lower-ranked source or out of order
     commands: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # (t, command) sent
+    # Over the whole run (not only the history): steps whose compute time exceeded the control period
+    overruns_wall: int = 0
+    overruns_cpu: int = 0
 
     def summary(self) -> dict:
         st = np.asarray(self.step_time_s) * 1e3
@@ -234,6 +237,12 @@ class LoopStats:
             "step_max_ms": float(st.max()) if st.size else float("nan"),
             "step_cpu_median_ms": float(np.median(cpu)) if cpu.size else float("nan"),
             "step_cpu_p99_ms": float(np.percentile(cpu, 99)) if cpu.size else float("nan"),
+            "step_p999_ms": float(np.percentile(st, 99.9)) if st.size else float("nan"),
+            "step_cpu_p999_ms": float(np.percentile(cpu, 99.9)) if cpu.size else float("nan"),
+            "step_cpu_max_ms": float(cpu.max()) if cpu.size else float("nan"),
+            "history_steps": int(st.size),  # the steps the percentiles and maxima cover (newest HISTORY)
+            "overruns_wall": self.overruns_wall,
+            "overruns_cpu": self.overruns_cpu,
             "solve_median_us": float(np.median(qp)) if qp.size else float("nan"),
             "solve_p99_us": float(np.percentile(qp, 99)) if qp.size else float("nan"),
             "allocation_fallbacks": self.fallbacks,
@@ -503,8 +512,11 @@ class OnboardLoop:
         self._was_enabled = self.armed and not failed
         self.command = command
         elapsed = time.perf_counter() - t0
-        self.stats.step_cpu_s.append(time.thread_time() - c0)
+        cpu_s = time.thread_time() - c0
+        self.stats.step_cpu_s.append(cpu_s)
         self.stats.step_time_s.append(elapsed)
+        self.stats.overruns_wall += elapsed > self.period_s
+        self.stats.overruns_cpu += cpu_s > self.period_s
         self.stats.steps += 1
         self.stats.commands.append((t, command.copy()))
         with self.link.batch():
