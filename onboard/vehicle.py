@@ -6,6 +6,17 @@ reference file `onboard/data/asr4.toml`, and each field's metadata says them.
 
 Every key is checked: an unknown or missing key, a wrong length, a negative mass, a NaN or an
 angle limit over pi raises `VehicleFileError` naming the file, the key and what was expected.
+
+One section is optional: `[envelope]`, the setpoints the robot accepts from the ground
+(`onboard.envelope` checks SET_POSITION_TARGET_LOCAL_NED and MANUAL_CONTROL against it). Each of
+its keys may be left out and then takes the default below, chosen for the 0.32 m ASR-IV sphere;
+a key that is present is checked like any other:
+
+    max_depth_m         m below the surface   2.0  (above the 1.2 m pool of seed 003, with margin)
+    min_depth_m         m below the surface   0.0  (the surface: no depth setpoint above the water)
+    max_speed_m_s       m/s, horizontal       1.0  (seed 000: "the largest velocity of ASR-IV (1 m/s)")
+    max_heave_speed_m_s m/s, vertical         0.5  (twice the controller's 0.25 m/s reference limit)
+    max_yaw_rate_rad_s  rad/s                 1.0  (above the controller's 0.8 rad/s reference limit)
 """
 
 from __future__ import annotations
@@ -129,6 +140,17 @@ class Sensors:
 
 
 @dataclass(frozen=True)
+class Envelope:
+    """[envelope] (optional, every key defaulted): what a ground setpoint may ask (onboard.envelope)."""
+
+    max_depth_m: float = _key("m below the surface", "positive", default=2.0)
+    min_depth_m: float = _key("m below the surface", "finite", default=0.0)
+    max_speed_m_s: float = _key("m/s, horizontal", "positive", default=1.0)
+    max_heave_speed_m_s: float = _key("m/s", "positive", default=0.5)
+    max_yaw_rate_rad_s: float = _key("rad/s", "positive", default=1.0)
+
+
+@dataclass(frozen=True)
 class Effect:
     enabled: bool = _key("", "bool")
 
@@ -177,6 +199,7 @@ class Vehicle:
     sensors: Sensors
     effects: Effects
     source: str = "<memory>"
+    envelope: Envelope = Envelope()  # optional [envelope]: absent, every key takes its default
 
     @property
     def n_units(self) -> int:
@@ -212,7 +235,9 @@ SECTIONS = {
     "servo": Servo,
     "pwm": Pwm,
     "sensors": Sensors,
+    "envelope": Envelope,
 }
+OPTIONAL_SECTIONS = frozenset({"envelope"})  # may be left out; their keys have defaults
 EFFECT_CLASSES = {
     eid: {"azimuth_transient": AzimuthTransient, "wall_proximity": WallProximity}.get(eid, Effect)
     for eid in EFFECT_IDS
@@ -251,7 +276,7 @@ def vehicle_from_dict(doc: dict, source: str = "<dict>") -> Vehicle:
         err.add("name", "a non-empty string", name)
     sections = {}
     for sec, cls in SECTIONS.items():
-        sections[sec] = _build(cls, doc.get(sec), sec, err)
+        sections[sec] = _build(cls, doc.get(sec, {} if sec in OPTIONAL_SECTIONS else None), sec, err)
     raw_units = doc.get("unit")
     units = []
     if not isinstance(raw_units, list) or not raw_units:
@@ -289,6 +314,9 @@ def _build(cls, raw, where: str, err: "_Errors"):
     values = {}
     for f in dataclasses.fields(cls):
         key = f"{where}.{f.name}"
+        if f.name not in raw and f.default is not dataclasses.MISSING:
+            values[f.name] = f.default  # an optional key ([envelope]) left out
+            continue
         if f.name not in raw:
             err.add(key, f"{_expect(f)} ({f.metadata['unit']})".replace(" ()", ""), None, missing=True)
             continue
@@ -356,6 +384,9 @@ def _check_consistency(v: Vehicle, err: "_Errors") -> None:
             err.add(f"unit[{i}].neutral", "a unit vector (norm 1 within 1e-3)", list(u.neutral))
         elif abs(u.neutral[2]) > 1e-3:
             err.add(f"unit[{i}].neutral", "a horizontal vector (z component 0)", list(u.neutral))
+    if v.envelope.min_depth_m >= v.envelope.max_depth_m:
+        err.add("envelope.min_depth_m", f"a depth above max_depth_m ({v.envelope.max_depth_m:g} m)",
+                v.envelope.min_depth_m)
     if v.environment.floor_depth <= v.environment.surface_depth:
         err.add("environment.floor_depth", "a NED z below surface_depth", v.environment.floor_depth)
 
