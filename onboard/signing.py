@@ -8,12 +8,34 @@ each signed packet carries link id, a 48-bit timestamp (10 us since 2015-01-01) 
 reconfigures the vehicle) is accepted only with a good signature and a timestamp newer than the
 last one of its stream (pymavlink's `check_signature`, replay protection included).
 It lives in `onboard` because the robot must carry it; the ground station imports it.
+
+`CommandGate` is everything the robot checks before a ground message may act, in this order:
+1. signing (when a key is set): unsigned -> `unsigned`; a signature that is not sha256(key +
+   packet) (wrong key, or any byte altered: link id, timestamp, payload) -> `bad_signature`,
+   and such a packet changes no state; a timestamp not newer than its stream's last one, or a
+   new stream stamped more than 60 s behind the robot's clock -> `replayed` (the spec's rule,
+   https://mavlink.io/en/guide/message_signing.html, as pymavlink and the C library apply it);
+   a 17th stream (link id, system, component) -> `too_many_streams` (the C library's
+   MAVLINK_MAX_SIGNING_STREAMS = 16), so a key holder cycling link ids cannot grow the table.
+2. foreign system: a command or setpoint whose source system is not one of `ground_systems`
+   (ArduPilot's SYSID_MYGCS, default 255 as QGroundControl and MAVProxy use; enforced like
+   SYSID_ENFORCE=1), or addressed (target_system) to another vehicle -> `foreign`, ignored as
+   ArduPilot ignores messages for another system. A message built in this process (no wire
+   bytes: the HIL demo's and the benches' in-process calls) has no source to check.
+3. parameters and envelope (onboard.envelope): arm/mode with bad parameters -> MAV_RESULT_DENIED
+   (`commands_denied`); a setpoint outside the vehicle's [envelope] -> STATUSTEXT "setpoint
+   refused: ..." (`setpoints_refused`), the previous setpoint stays.
+Rejections 1-2 are silent on the link (nothing is sent to an unknown or unproven sender);
+every one is counted in `SecurityCounts`, which the loop reports in telemetry and its summary.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
+import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -21,6 +43,11 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 SIGNING_EPOCH_UNIX_S = 1_420_070_400  # 2015-01-01T00:00:00Z, MAVLink 2 signing time origin
 SIGNED_FLAG = 0x01  # MAVLINK_IFLAG_SIGNED, incompat_flags bit 0
 KEY_BYTES = 32
+SIGNATURE_BYTES = 13  # link id (1) + timestamp (6, little-endian) + sha256 prefix (6)
+NEW_STREAM_MAX_AGE = 6_000_000  # 60 s in 10 us units: a new stream may lag the robot's clock this much
+MAX_STREAMS = 16  # MAVLINK_MAX_SIGNING_STREAMS of the MAVLink C library (mavlink_types.h)
+GCS_SYSTEMS = (255,)  # QGroundControl's and MAVProxy's default system id (ArduPilot SYSID_MYGCS)
+REFUSAL_TEXT_PERIOD_S = 0.2  # at most one "setpoint refused"/"command denied" text per period
 # Messages that move or reconfigure the vehicle: refused unsigned when signing is on.
 COMMAND_MESSAGES = frozenset({
     "COMMAND_LONG", "COMMAND_INT", "SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT",
@@ -79,50 +106,197 @@ def is_signed(msg) -> bool:
     return len(buf) > 2 and buf[0] == 0xFD and bool(buf[2] & SIGNED_FLAG)
 
 
+
+def signature_fields(buf: bytes) -> tuple[int, int] | None:
+    """(link_id, timestamp) of a signed MAVLink 2 packet, None if it carries no signature."""
+    if len(buf) < 12 + SIGNATURE_BYTES or buf[0] != 0xFD or not buf[2] & SIGNED_FLAG:
+        return None
+    return buf[-13], int.from_bytes(buf[-12:-6], "little")
+
+
+def signature_ok(buf: bytes, key: bytes) -> bool:
+    """The packet's 6 signature bytes are the first 6 of sha256(key + everything before them)."""
+    return hmac.compare_digest(hashlib.sha256(bytes(key) + bytes(buf[:-6])).digest()[:6], bytes(buf[-6:]))
+
+
+@dataclass
+class SecurityCounts:
+    """What the robot refused, by reason (and what signing accepted): the loop's telemetry and summary."""
+
+    accepted: int = 0  # signed commands that passed the signature and timestamp checks
+    unsigned: int = 0
+    bad_signature: int = 0
+    replayed: int = 0
+    too_many_streams: int = 0
+    foreign: int = 0
+    setpoints_refused: int = 0
+    commands_denied: int = 0
+
+    def summary(self) -> dict:
+        return {"sig_accepted": self.accepted, "sig_unsigned": self.unsigned, "sig_bad": self.bad_signature,
+                "sig_replayed": self.replayed, "sig_too_many_streams": self.too_many_streams,
+                "foreign_commands": self.foreign, "setpoints_refused": self.setpoints_refused,
+                "commands_denied": self.commands_denied}
+
+    def telemetry(self) -> dict:
+        """NAMED_VALUE_FLOAT names (<= 10 characters) -> value, for the counters that are not zero
+        (a quiet link costs no telemetry bandwidth; a counter appears with its first event)."""
+        named = {"sig_ok": self.accepted, "sig_unsig": self.unsigned, "sig_bad": self.bad_signature,
+                 "sig_replay": self.replayed, "sig_strm": self.too_many_streams, "foreign": self.foreign,
+                 "sp_refused": self.setpoints_refused, "cmd_denied": self.commands_denied}
+        return {k: float(v) for k, v in named.items() if v}
+
+
 @dataclass
 class SigningState:
-    """The onboard side's signing state: the key (None: signing off) and the per-stream
-    timestamps, kept in a pymavlink MAVLink object whose `check_signature` does the check."""
+    """The onboard side's signing state: the key (None: signing off), the last timestamp of each
+    stream (link id, system, component) and the robot's own signing clock."""
 
     key: bytes | None = None
-    accepted: int = 0
-    rejected_unsigned: int = 0
-    rejected_bad: int = 0
+    counts: SecurityCounts = field(default_factory=SecurityCounts)
+    clock: object = time.time  # unix seconds; the robot's time for judging a new stream's age
 
     def __post_init__(self):
-        self._mav = None
-        if self.key is not None:
-            if len(self.key) != KEY_BYTES:
-                raise SigningError(f"signing key: expected {KEY_BYTES} bytes, got {len(self.key)}")
-            self._mav = mavlink.MAVLink(None)
-            self._mav.signing.secret_key = bytes(self.key)
-            self._mav.signing.timestamp = signing_timestamp(time.time())
+        if self.key is not None and len(self.key) != KEY_BYTES:
+            raise SigningError(f"signing key: expected {KEY_BYTES} bytes, got {len(self.key)}")
+        self.streams: dict = {}
+        self.newest = 0  # the newest timestamp accepted (10 us units since 2015)
 
     @property
     def on(self) -> bool:
         return self.key is not None
 
+    # the counters under their earlier names
+    accepted = property(lambda self: self.counts.accepted)
+    rejected_unsigned = property(lambda self: self.counts.unsigned)
+    rejected_bad = property(lambda self: self.counts.bad_signature)
+    rejected_replay = property(lambda self: self.counts.replayed)
+
+    def check(self, msg) -> str | None:
+        """None if the signed packet may act, else why not ("unsigned", "bad_signature",
+        "replayed", "too_many_streams"), counted. Only a packet with a good signature changes state."""
+        c = self.counts
+        buf = bytes(msg.get_msgbuf())
+        fields = signature_fields(buf)
+        if fields is None:
+            c.unsigned += 1
+            return "unsigned"
+        if not signature_ok(buf, self.key):  # first: what is not proven changes nothing below
+            c.bad_signature += 1
+            return "bad_signature"
+        link_id, ts = fields
+        stream = (link_id, msg.get_srcSystem(), msg.get_srcComponent())
+        last = self.streams.get(stream)
+        if last is not None:
+            if ts <= last:
+                c.replayed += 1
+                return "replayed"
+        else:
+            now = max(self.newest, signing_timestamp(self.clock()))
+            if ts + NEW_STREAM_MAX_AGE < now:
+                c.replayed += 1
+                return "replayed"
+            if len(self.streams) >= MAX_STREAMS:
+                c.too_many_streams += 1
+                return "too_many_streams"
+        self.streams[stream] = ts
+        self.newest = max(self.newest, ts)
+        c.accepted += 1
+        return None
+
 
 def accept_command(msg, signing_state: SigningState | None) -> bool:
-    """Onboard: may this message act? True for non-commands and when signing is off; with signing
-    on, a command needs a good signature with a fresh timestamp (replays are refused)."""
+    """Onboard: may this message act, as far as signing goes? True for non-commands and when
+    signing is off; with signing on, a command needs a good signature with a fresh timestamp."""
     if signing_state is None or not signing_state.on or msg.get_type() not in COMMAND_MESSAGES:
         return True
-    if not is_signed(msg):
-        signing_state.rejected_unsigned += 1
-        return False
-    mav = signing_state._mav
-    buf = bytearray(msg.get_msgbuf())
-    stream = (buf[-13], msg.get_srcSystem(), msg.get_srcComponent())
-    before = mav.signing.stream_timestamps.get(stream)
-    if mav.check_signature(buf, msg.get_srcSystem(), msg.get_srcComponent()):
-        signing_state.accepted += 1
-        return True
-    # pymavlink records the timestamp before comparing the hash: a forged packet must not move
-    # the stream on (it would lock out the real sender), so restore it
-    if before is None:
-        mav.signing.stream_timestamps.pop(stream, None)
-    else:
-        mav.signing.stream_timestamps[stream] = before
-    signing_state.rejected_bad += 1
-    return False
+    return signing_state.check(msg) is None
+
+
+def _target_system(msg) -> int:
+    t = getattr(msg, "target_system", None)
+    return int(getattr(msg, "target", 0) if t is None else t)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    accepted: bool
+    reason: str = ""  # why not, for tests and logs ("" when accepted)
+    replies: tuple = ()  # messages to send back (COMMAND_ACK, STATUSTEXT)
+
+
+ACCEPT = Verdict(True)
+
+
+class CommandGate:
+    """Everything the robot checks before a ground message acts (see the module docstring):
+    `admit(msg) -> Verdict`. Non-commands (sensors, telemetry, heartbeats) always pass."""
+
+    def __init__(self, key: bytes | None = None, ground_systems=GCS_SYSTEMS, own_system: int = 1,
+                 envelope=None, counts: SecurityCounts | None = None, clock=time.monotonic,
+                 signing_clock=time.time):
+        systems = tuple(ground_systems)
+        if not systems or not all(isinstance(s, int) and 1 <= s <= 255 for s in systems):
+            raise SigningError(f"ground_systems: expected system ids 1..255, got {ground_systems!r}")
+        if envelope is None:
+            from .vehicle import Envelope
+
+            envelope = Envelope()
+        self.counts = counts if counts is not None else SecurityCounts()
+        self.signing = SigningState(key, counts=self.counts, clock=signing_clock)
+        self.ground_systems = frozenset(systems)
+        self.own_system = int(own_system)
+        self.envelope = envelope
+        self.clock = clock
+        self._next_text = -math.inf
+
+    def admit(self, msg) -> Verdict:
+        name = msg.get_type()
+        if name not in COMMAND_MESSAGES:
+            return ACCEPT
+        if self.signing.on:
+            why = self.signing.check(msg)
+            if why is not None:
+                return Verdict(False, why)
+        wire = len(msg.get_msgbuf()) > 0  # built in this process: no source system to check
+        if wire and msg.get_srcSystem() not in self.ground_systems:
+            self.counts.foreign += 1
+            return Verdict(False, f"foreign source system {msg.get_srcSystem()}")
+        try:
+            target = _target_system(msg)
+        except (TypeError, ValueError, OverflowError):
+            target = 0
+        if target not in (0, self.own_system):
+            self.counts.foreign += 1
+            return Verdict(False, f"addressed to system {target}")
+        from . import envelope as env
+
+        try:
+            if name == "COMMAND_LONG":
+                why = env.command_violation(msg)
+                if why is not None:
+                    self.counts.commands_denied += 1
+                    ack = mavlink.MAVLink_command_ack_message(int(msg.command), mavlink.MAV_RESULT_DENIED, 0, 0,
+                                                              msg.get_srcSystem(), msg.get_srcComponent())
+                    return Verdict(False, why, (ack,) + self._text(why))
+            elif name == "SET_POSITION_TARGET_LOCAL_NED":
+                why = env.position_target_violation(self.envelope, msg)
+            elif name == "MANUAL_CONTROL":
+                why = env.manual_violation(msg)
+            else:
+                why = None
+        except (TypeError, ValueError, AttributeError, OverflowError):
+            return ACCEPT  # malformed: the loop's decoder refuses and counts it (rejected_inputs)
+        if why is not None:
+            self.counts.setpoints_refused += 1
+            return Verdict(False, why, self._text(why))
+        return ACCEPT
+
+    def _text(self, why: str) -> tuple:
+        """A STATUSTEXT warning saying why, at most one per REFUSAL_TEXT_PERIOD_S (a flood of bad
+        setpoints must not become a flood of replies; the counters still count every one)."""
+        now = self.clock()
+        if now < self._next_text:
+            return ()
+        self._next_text = now + REFUSAL_TEXT_PERIOD_S
+        return (mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_WARNING, why[:50].encode()),)
