@@ -40,7 +40,7 @@ from .mavlink_codec import CodecError
 from .pwm import command_to_normalised, command_to_pwm
 from .sensors import depth_from_pressure
 from .vehicle import Vehicle
-from .signing import accept_command
+from .signing import GCS_SYSTEMS, SecurityCounts
 
 IMU_RANK = {"HIGHRES_IMU": 0, "SCALED_IMU": 1, "SCALED_IMU2": 2, "SCALED_IMU3": 3, "RAW_IMU": 4}
 BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
@@ -192,6 +192,7 @@ class LoopConfig:
     allocation_change_weight: float | None = None  # None: the allocator's default (AllocationConfig)
     estimator_backend: str = "filterpy"  # or "compiled": the same EKF equations in numba (onboard.estimator)
     signing_key: bytes | None = None  # MAVLink 2 signing on: unsigned commands refused (ground.commands)
+    ground_systems: tuple = GCS_SYSTEMS  # source systems whose commands/setpoints count (others: foreign)
 
     def __post_init__(self):
         if not (math.isfinite(self.control_rate_hz) and self.control_rate_hz > 0):
@@ -225,6 +226,7 @@ class LoopStats:
     # Over the whole run (not only the history): steps whose compute time exceeded the control period
     overruns_wall: int = 0
     overruns_cpu: int = 0
+    security: SecurityCounts = field(default_factory=SecurityCounts)  # signing, foreign, envelope (onboard.signing)
 
     def summary(self) -> dict:
         st = np.asarray(self.step_time_s) * 1e3
@@ -252,6 +254,7 @@ class LoopStats:
             "arm_refusals": self.arm_refusals,
             "rejected_inputs": self.rejected_inputs,
             "step_errors": self.step_errors,
+            **self.security.summary(),
         }
 
 
@@ -303,10 +306,12 @@ class OnboardLoop:
         self.demand = np.zeros(6)
         self.stats = LoopStats()
         # the ground's signing and SET_MESSAGE_INTERVAL, onboard side (ground/commands.py)
-        from .signing import SigningState
+        from .signing import CommandGate
         from .stream_rates import StreamRates
 
-        self.signing = SigningState(config.signing_key)
+        self.gate = CommandGate(config.signing_key, config.ground_systems, envelope=vehicle.envelope,
+                                own_system=getattr(getattr(link, "mav", None), "srcSystem", 1),
+                                counts=self.stats.security)
         self.rates = StreamRates({**{n: config.telemetry_rate_hz for n in TELEMETRY_STREAMS},
                                   "SERVO_OUTPUT_RAW": config.control_rate_hz})  # the ground's copy
         self._queue: list = []  # (t, arrival order, kind, sample) awaiting the estimator
@@ -390,8 +395,11 @@ class OnboardLoop:
         """One received message: a sensor sample into the queue, a setpoint or command applied.
         What does not decode (NaN, inf, a field out of range) is counted and dropped."""
         name = m.get_type()
-        if not accept_command(m, self.signing):
-            return  # signing on and the command is not signed by the key (counted in self.signing)
+        verdict = self.gate.admit(m)  # signing, foreign system, envelope, arm/mode params: counted there
+        for reply in verdict.replies:  # COMMAND_ACK DENIED / STATUSTEXT "setpoint refused: ..."
+            (self.ground or self.link).send(reply)
+        if not verdict.accepted:
+            return
         try:
             if name in IMU_RANK:
                 self._on_imu(m)
@@ -690,6 +698,7 @@ class OnboardLoop:
             "in_rej": float(st.rejected_inputs),
             "link_bad": float(self.link.bad_packets + self.link.unknown_packets),
         }
+        values.update(self.stats.security.telemetry())  # sig_unsig, sig_bad, sig_replay, foreign, ... once non-zero
         for name, value in values.items():
             out.send(mavlink.MAVLink_named_value_float_message(ms, name.encode(), float(value)))
 
