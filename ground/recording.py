@@ -99,6 +99,7 @@ class Skipped:
     unknown_packets: int = 0  # good framing, message id not in the dialect (CRC not checkable)
     non_monotonic: dict = field(default_factory=dict)  # stream -> samples dropped
     gaps: tuple = ()  # (stream, t0_s, t1_s) where a stream stops for > 5 periods
+    bad_records: int = 0  # dataflash records of a used type lacking a column or with a non-number
 
 
 @dataclass(frozen=True)
@@ -157,6 +158,7 @@ class Recording:
             "truncated_bytes": s.truncated_bytes,
             "unknown_packets": s.unknown_packets,
             "non_monotonic": dict(s.non_monotonic),
+            "bad_records": s.bad_records,
             "gaps": [{"stream": g[0], "t0": round(g[1], 3), "t1": round(g[2], 3)} for g in s.gaps],
         }
 
@@ -579,40 +581,59 @@ def _read_dataflash(path: Path, data: bytes) -> Recording:
             rows[name].append(m.to_dict())
     nonmono: dict = {}
     gaps: list = []
+    bad = [0]
     imu = pressure = servo = attitude = esc = None
-    imu_rows = [r for r in rows["IMU"] if r.get("I", 0) == 0]
-    if imu_rows:
-        t, keep = _monotonic([r["TimeUS"] / 1e6 for r in imu_rows], "imu", nonmono, gaps)
-        acc = np.array([[r["AccX"], r["AccY"], r["AccZ"]] for r in imu_rows])[keep]
-        gyr = np.array([[r["GyrX"], r["GyrY"], r["GyrZ"]] for r in imu_rows])[keep]
-        imu = ImuStream(_frozen(t), _frozen(acc), _frozen(gyr), "IMU")
-    baro = [r for r in rows["BARO"] if r.get("I", 0) == 1] or [r for r in rows["BARO"] if r.get("I", 0) == 0]
-    if baro:  # ArduSub: instance 1 is the external depth sensor
-        t, keep = _monotonic([r["TimeUS"] / 1e6 for r in baro], "pressure", nonmono, gaps)
-        pressure = PressureStream(_frozen(t), _frozen(np.array([r["Press"] for r in baro])[keep]), "BARO")
-    if rows["RCOU"]:
-        t, keep = _monotonic([r["TimeUS"] / 1e6 for r in rows["RCOU"]], "servo", nonmono, gaps)
-        pwm = np.array([[r.get(f"C{c}", 0) for c in range(1, 17)] for r in rows["RCOU"]], float)[keep]
-        servo = ServoStream(_frozen(t), _frozen(pwm))
-    if rows["ATT"]:
-        t, keep = _monotonic([r["TimeUS"] / 1e6 for r in rows["ATT"]], "attitude", nonmono, gaps)
-        e = np.radians(np.array([[r["Roll"], r["Pitch"], r["Yaw"]] for r in rows["ATT"]]))[keep]
+    # A damaged FMT record can rename a type's columns or change their types: a record without
+    # the columns a stream needs, or with a value that is not a number, is counted, not used.
+    imu_rows = _df_columns(rows["IMU"], ("TimeUS", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ"), bad, "I")
+    imu_rows = imu_rows[imu_rows[:, -1] == 0] if len(imu_rows) else imu_rows
+    if len(imu_rows):
+        t, keep = _monotonic(imu_rows[:, 0] / 1e6, "imu", nonmono, gaps)
+        imu = ImuStream(_frozen(t), _frozen(imu_rows[keep, 1:4]), _frozen(imu_rows[keep, 4:7]), "IMU")
+    baro_rows = _df_columns(rows["BARO"], ("TimeUS", "Press"), bad, "I")
+    baro = baro_rows[baro_rows[:, -1] == 1] if len(baro_rows) else baro_rows
+    if not len(baro) and len(baro_rows):
+        baro = baro_rows[baro_rows[:, -1] == 0]
+    if len(baro):  # ArduSub: instance 1 is the external depth sensor
+        t, keep = _monotonic(baro[:, 0] / 1e6, "pressure", nonmono, gaps)
+        pressure = PressureStream(_frozen(t), _frozen(baro[keep, 1]), "BARO")
+    rcou = _df_columns(rows["RCOU"], ("TimeUS",), bad, *(f"C{c}" for c in range(1, 17)))
+    if len(rcou):
+        t, keep = _monotonic(rcou[:, 0] / 1e6, "servo", nonmono, gaps)
+        servo = ServoStream(_frozen(t), _frozen(rcou[keep, 1:17]))
+    att = _df_columns(rows["ATT"], ("TimeUS", "Roll", "Pitch", "Yaw"), bad)
+    if len(att):
+        t, keep = _monotonic(att[:, 0] / 1e6, "attitude", nonmono, gaps)
+        e = np.radians(att[keep, 1:4])
         e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
         rates = np.zeros_like(e)
         if len(t) > 1:
             rates = np.gradient(np.unwrap(e, axis=0), t, axis=0)
         attitude = AttitudeStream(_frozen(t), _frozen(e), _frozen(rates))
-    esc_rows = [r for r in rows["ESC"] if r.get("Instance", 0) < 4]
-    if esc_rows:
-        times = sorted({r["TimeUS"] for r in esc_rows})
+    esc_rows = _df_columns(rows["ESC"], ("TimeUS", "RPM"), bad, "Instance")
+    esc_rows = esc_rows[np.isin(esc_rows[:, -1], (0, 1, 2, 3))] if len(esc_rows) else esc_rows
+    if len(esc_rows):
+        times = np.unique(esc_rows[:, 0])  # sorted; NaN times (if any) each their own row, then dropped
         rpm = np.zeros((len(times), 4))
-        index = {tt: i for i, tt in enumerate(times)}
-        for r in esc_rows:
-            rpm[index[r["TimeUS"]], int(r["Instance"])] = r["RPM"]
-        t, keep = _monotonic(np.array(times) / 1e6, "esc", nonmono, gaps)
+        rpm[np.searchsorted(times, esc_rows[:, 0]), esc_rows[:, -1].astype(int)] = esc_rows[:, 1]
+        t, keep = _monotonic(times / 1e6, "esc", nonmono, gaps)
         esc = EscStream(_frozen(t), _frozen(rpm[keep]))
     if not counts:
         raise RecordingError(f"{path}: no dataflash records found")
     skipped_bytes = max(int(len(data) - used_bytes), 0)
-    skipped_info = Skipped(0, skipped_bytes, 0, 0, nonmono, tuple(gaps))
+    skipped_info = Skipped(0, skipped_bytes, 0, 0, nonmono, tuple(gaps), bad[0])
     return Recording(str(path), "dataflash", counts, skipped_info, imu, pressure, servo, attitude, esc)
+
+
+def _df_columns(rows: list, need: tuple, bad: list, *optional: str) -> np.ndarray:
+    """Rows (dicts of DFReader records) as a float array of the `need` columns then the
+    `optional` ones (0 when absent, as ArduPilot omits unused RCOU channels and instance 0); a
+    record missing a needed column or holding a non-number anywhere used counts in bad[0]."""
+    out = []
+    for r in rows:
+        vals = [r.get(c) for c in need] + [r.get(c, 0) for c in optional]
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals):
+            out.append(vals)
+        else:
+            bad[0] += 1
+    return np.array(out, dtype=float).reshape(len(out), len(need) + len(optional))
