@@ -19,6 +19,16 @@ Ground setpoints of a scripted mission are injected in vehicle time, as a ground
 messages routed through the autopilot (system 255), so a mission is deterministic in lock-step.
 The recording (.tlog, hil.tlog) holds everything sent and received, stamped with vehicle time,
 plus the pool's motion-capture truth (ATT_POS_MOCAP) at the attitude rate, never sent.
+
+Joint angle feedback: ACTUATOR_OUTPUT_STATUS at the attitude rate with the plant's actual joint
+angles (smart servos report their position; onboard.mavlink_codec.encode_joint_angles).
+
+Faults (hil.faults.FaultPlan, `faults=`): link faults wrap the link in a hil.faults.FaultyLink
+(then the recording holds what crossed it); a dead, weak or stuck actuator changes the command
+the plant executes (SERVO_OUTPUT_RAW still reports what the controller commanded; the ESC rpm and
+the joint feedback show what the actuators do); IMU freeze/NaN and depth jumps change the sensor
+messages. Each fault's start (and end) is marked in the recording by a never-sent STATUSTEXT
+"INJECT ..." from the fault injector, system 1 component 250.
 """
 
 from __future__ import annotations
@@ -33,6 +43,18 @@ from onboard import mavlink_codec as codec
 from onboard.pwm import command_to_pwm, normalised_to_command, pwm_to_command
 from onboard.vehicle import Vehicle
 
+from .faults import (
+    INJECTOR_COMPONENT,
+    INJECTOR_SYSTEM,
+    LOCKSTEP_EXEMPT,
+    FaultPlan,
+    FaultyLink,
+    actuator_command,
+    imu_fault,
+    injection_events,
+    joint_index,
+    pressure_offset_pa,
+)
 from .tlog import FIXED_EPOCH_US
 
 GCS_SYSTEM = 255
@@ -44,13 +66,7 @@ class EndpointError(RuntimeError):
     """The controller on the other side stopped answering (lock-step) or never appeared."""
 
 
-@dataclass(frozen=True)
-class Faults:
-    """What goes wrong on purpose: IMU silence windows and garbage bytes on the link."""
-
-    imu_dropouts_s: tuple = ()  # ((t0, t1), ...): no IMU message with t0 <= t < t1
-    garbage_times_s: tuple = ()  # instants at which `garbage_bytes` random bytes are written
-    garbage_bytes: int = 200
+Faults = FaultPlan  # the older name: Faults(imu_dropouts_s=..., garbage_times_s=..., garbage_bytes=...)
 
 
 @dataclass
@@ -77,7 +93,7 @@ class HilEndpoint:
         lockstep: bool = True,
         actuators: str = "hil",
         setpoints=(),
-        faults: Faults = Faults(),
+        faults: FaultPlan = FaultPlan(),
         tlog=None,
         reply_timeout_s: float = 0.5,
         give_up_s: float = 10.0,
@@ -95,6 +111,7 @@ class HilEndpoint:
         self.actuators = actuators
         self.setpoints = sorted(setpoints, key=lambda p: p[0])  # [(t_s, pymavlink message)]
         self._next_setpoint = 0
+        faults.check_units(vehicle.n_units)
         self.faults = faults
         self.tlog = tlog
         self.reply_timeout_s = reply_timeout_s
@@ -115,6 +132,21 @@ class HilEndpoint:
         self._answered_us = -1
         self._applied_at_s = 0.0  # vehicle time the command in force was applied
         self._wall0 = None
+        self._commanded = np.array(plant.command, dtype=float)  # the controller's (before actuator faults)
+        self._stuck_rad: dict = {}  # (unit, joint) -> angle at the fault's onset
+        self._frozen_imu = None  # the last good IMU sample before a freeze
+        self._last_imu = None
+        self._next_joints_s = 0.0
+        self._arrived_us = -1  # lock-step: newest command stamp that reached the fault injector
+        self._injector = codec.make_mavlink(INJECTOR_SYSTEM, INJECTOR_COMPONENT)
+        self._marks = injection_events(faults)
+        self._actuator_faults = bool(faults.jets or faults.stuck_joints)
+        self._rho_g = (vehicle.environment.rho, vehicle.environment.g)
+        self._tapped = faults.link_faults
+        if faults.link_faults:
+            self.link = FaultyLink(link, faults, clock=lambda: self.time_s, seed=seed,
+                                   exempt=LOCKSTEP_EXEMPT if lockstep else (),
+                                   tap=self._tap, on_arrival=self._note_arrival)
 
     # -- time ----------------------------------------------------------------------------------
     @property
@@ -133,8 +165,18 @@ class HilEndpoint:
         packet = self.link.send(msg)
         name = msg.get_type()
         self.stats.sent[name] = self.stats.sent.get(name, 0) + 1
-        self._record(packet, t_s, name)
+        if not self._tapped:  # a FaultyLink records what goes onto the wire itself (_tap)
+            self._record(packet, t_s, name)
         return packet
+
+    def _tap(self, packet: bytes, name: str) -> None:
+        self._record(packet, self.time_s, name)
+
+    def _mark(self, text: str, t_s: float) -> None:
+        """A never-sent STATUSTEXT from the fault injector into the recording."""
+        if self.tlog is not None:
+            msg = mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_NOTICE, text.encode()[:50], 0, 0)
+            self.tlog.write_packet(codec.encode(self._injector, msg), self._stamp_us(t_s), "STATUSTEXT")
 
     def _send_as_gcs(self, msg, t_s: float) -> None:
         packet = bytes(msg.pack(self._gcs))
@@ -148,10 +190,11 @@ class HilEndpoint:
     def start(self, wait_s: float = 10.0) -> None:
         """Wait until the controller speaks (a udpin link learns its address from it)."""
         deadline = time.monotonic() + wait_s
-        while not self.link.has_peer:
+        raw = getattr(self.link, "inner", self.link)  # the handshake is not subject to link faults
+        while not raw.has_peer:
             if time.monotonic() > deadline:
                 raise EndpointError(f"no controller spoke on {self.link.connection} within {wait_s:.0f} s")
-            m = self.link.recv(0.1)
+            m = raw.recv(0.1)
             if m is not None:
                 self._handle(m, self.time_s, record=False)  # the handshake is not the flight
         self._wall0 = time.monotonic()
@@ -169,6 +212,8 @@ class HilEndpoint:
             self._await_command(t)
         else:
             self._drain_until(self._wall0 + t + self.period_s, t)
+        if self._actuator_faults:  # a fault begins at its t0 whether or not a command came
+            self._command_plant(t)
         self.stats.periods += 1
         if self.on_period is not None:
             self.on_period(self)
@@ -183,6 +228,8 @@ class HilEndpoint:
             self.step()
 
     def _emit(self, t: float, samples) -> None:
+        while self._marks and self._marks[0][0] <= t + 1e-9:
+            self._mark(self._marks.pop(0)[1], t)
         if t + 1e-9 >= self._next_heartbeat_s:
             self._send(codec.heartbeat(armed=True), t)
             self._next_heartbeat_s += 1.0
@@ -191,16 +238,24 @@ class HilEndpoint:
             self._next_setpoint += 1
         # recorded at the frame's time t (a burst received at once; each message carries its own
         # sample time), so the .tlog's clock never goes back whatever the rates
+        f = self.faults
         for s in samples.pressure:
+            if f.depth_jumps:
+                s = replace(s, press_abs_pa=s.press_abs_pa + pressure_offset_pa(f, s.time_s, *self._rho_g))
             self._send(codec.encode_pressure(s), t)
         for s in samples.attitude:
             self._send(codec.encode_attitude(s), t)
         for s in samples.imu:
-            if not any(t0 <= s.time_s < t1 for t0, t1 in self.faults.imu_dropouts_s):
-                self._send(codec.encode_imu(s), t)
+            if any(t0 <= s.time_s < t1 for t0, t1 in f.imu_dropouts_s):
+                continue
+            self._send(self._imu_message(s), t)
+        if t + 1e-9 >= self._next_joints_s:  # the servos' measured angles, at the attitude rate
+            self._next_joints_s += self._mocap_period_s
+            x, lay = self.plant.state, self.plant.layout
+            self._send(codec.encode_joint_angles(t, x[lay.alpha], x[lay.beta]), t)
         # what the autopilot outputs: SERVO_OUTPUT_RAW of the command in force, stamped with the
         # time it took effect (the previous frame's answer), and the propellers' rpm now
-        act = self.plant.actuators(command_to_pwm(self.vehicle, self.plant.command))
+        act = self.plant.actuators(command_to_pwm(self.vehicle, self._commanded))
         if self.stats.commands_applied:  # nothing to report before the first command
             self._send(codec.encode_actuators(replace(act, time_s=self._applied_at_s))[0], t)
         for msg in codec.encode_actuators(act)[1:]:
@@ -217,13 +272,40 @@ class HilEndpoint:
             self.link.write_raw(self._rng.integers(0, 256, self.faults.garbage_bytes, dtype=np.uint8).tobytes())
         self._marker_packet = self._send(mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t)), t)
 
+    def _imu_message(self, s):
+        """HIGHRES_IMU of sample s, frozen (the last good values, fresh stamp) or NaN when a fault says."""
+        fault = imu_fault(self.faults, s.time_s) if (self.faults.imu_freeze_s or self.faults.imu_nan_s) else None
+        if fault == "nan":
+            nan = float("nan")
+            return mavlink.MAVLink_highres_imu_message(
+                codec.time_usec(s.time_s), nan, nan, nan, nan, nan, nan,
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, codec.HIGHRES_IMU_ACCEL_GYRO, 0)
+        if fault == "freeze":
+            if self._frozen_imu is None:
+                self._frozen_imu = self._last_imu if self._last_imu is not None else s
+            return codec.encode_imu(replace(self._frozen_imu, time_s=s.time_s))
+        self._frozen_imu = None
+        self._last_imu = s
+        return codec.encode_imu(s)
+
     # -- commands --------------------------------------------------------------------------------
+    def _note_arrival(self, m) -> None:
+        """A message reached the fault injector: a command counts as the controller's answer."""
+        name = m.get_type()
+        if name == "HIL_ACTUATOR_CONTROLS" and self.actuators == "hil":
+            self._arrived_us = max(self._arrived_us, int(m.time_usec))
+        elif name == "SERVO_OUTPUT_RAW" and self.actuators == "pwm":
+            self._arrived_us = max(self._arrived_us, self._unwrap(int(m.time_usec), self.time_s))
+
     def _await_command(self, t: float) -> None:
         want_us = codec.time_usec(t)
         waited = 0.0
-        while self._answered_us < want_us:
+        while max(self._answered_us, self._arrived_us) < want_us:
+            before = getattr(self.link, "arrivals", 0)
             m = self.link.recv(self.reply_timeout_s)
             if m is None:
+                if getattr(self.link, "arrivals", 0) != before:
+                    continue  # it came, and the fault injector lost it or holds it back
                 waited += self.reply_timeout_s
                 if waited >= self.give_up_s:
                     raise EndpointError(
@@ -276,9 +358,23 @@ class HilEndpoint:
         if self.lockstep and stamp_us < self._answered_us:
             self.stats.stale_replies += 1
             return
-        self.plant.set_command(command)
+        self._commanded = np.asarray(command, dtype=float).copy()
+        self._command_plant(t)
         self._applied_at_s = t
         if self.history:
             self.commands.append((t, np.asarray(command, dtype=float).copy()))
         self._answered_us = max(self._answered_us, stamp_us)
         self.stats.commands_applied += 1
+
+    def _command_plant(self, t: float) -> None:
+        """The controller's command through the actuator faults in force at t, into the plant."""
+        if not self._actuator_faults:
+            self.plant.set_command(self._commanded)
+            return
+        k = self.vehicle.n_units
+        x, lay = self.plant.state, self.plant.layout
+        for s in self.faults.stuck_joints:
+            if t + 1e-9 >= s.t0_s and (s.unit, s.joint) not in self._stuck_rad:
+                angles = np.concatenate([x[lay.alpha], x[lay.beta]])
+                self._stuck_rad[(s.unit, s.joint)] = float(angles[joint_index(k, s.unit, s.joint)])
+        self.plant.set_command(actuator_command(self.faults, self._commanded, t, self._stuck_rad))
