@@ -226,6 +226,7 @@ class LoopStats:
     # Over the whole run (not only the history): steps whose compute time exceeded the control period
     overruns_wall: int = 0
     overruns_cpu: int = 0
+    overrun_log: deque = field(default_factory=lambda: deque(maxlen=100))  # the newest (t_s, wall_ms, cpu_ms) over it
     security: SecurityCounts = field(default_factory=SecurityCounts)  # signing, foreign, envelope (onboard.signing)
 
     def summary(self) -> dict:
@@ -245,6 +246,7 @@ class LoopStats:
             "history_steps": int(st.size),  # the steps the percentiles and maxima cover (newest HISTORY)
             "overruns_wall": self.overruns_wall,
             "overruns_cpu": self.overruns_cpu,
+            "overrun_log": [tuple(round(x, 4) for x in e) for e in self.overrun_log],
             "solve_median_us": float(np.median(qp)) if qp.size else float("nan"),
             "solve_p99_us": float(np.percentile(qp, 99)) if qp.size else float("nan"),
             "allocation_fallbacks": self.fallbacks,
@@ -523,8 +525,10 @@ class OnboardLoop:
         cpu_s = time.thread_time() - c0
         self.stats.step_cpu_s.append(cpu_s)
         self.stats.step_time_s.append(elapsed)
-        self.stats.overruns_wall += elapsed > self.period_s
-        self.stats.overruns_cpu += cpu_s > self.period_s
+        if elapsed > self.period_s or cpu_s > self.period_s:
+            self.stats.overruns_wall += elapsed > self.period_s
+            self.stats.overruns_cpu += cpu_s > self.period_s
+            self.stats.overrun_log.append((t, elapsed * 1e3, cpu_s * 1e3))
         self.stats.steps += 1
         self.stats.commands.append((t, command.copy()))
         with self.link.batch():
