@@ -21,6 +21,7 @@ SUBCOMMANDS = {
     "onboard": ("onboard.cli", "the onboard loop on a MAVLink link (autopilot, HIL plant or log replay)"),
     "hil": ("hil.cli", "the plant as a MAVLink sensor endpoint (or SITL JSON physics) for a controller"),
     "ground": ("ground.ground_cli", "ground station: live telemetry view, .tlog recorder, commands, stream rates, signing"),
+    "soak": ("hil.soak", "an hour (or --duration) of random missions and faults in lock-step: deadlines, memory, packets"),
     "plot": ("ground.plot", "standard plots of a .tlog/.bin recording (HIL, sim or ArduSub) as PNGs and index.html"),
 }
 
