@@ -65,7 +65,7 @@ def test_onboard_check_with_signing_on():
     assert not accept_command(forged, state)
     telemetry = _parse(mavlink.MAVLink_attitude_message(0, 0, 0, 0, 0, 0, 0).pack(mavlink.MAVLink(None, 1, 1)))
     assert accept_command(telemetry, state)  # not a command: signing does not gate sensor data
-    assert (state.accepted, state.rejected_unsigned, state.rejected_bad) == (1, 1, 2)
+    assert (state.accepted, state.rejected_unsigned, state.rejected_bad, state.rejected_replay) == (1, 1, 1, 1)
     # a forged packet stamped far in the future must not lock the real sender out
     future = _signed(arm(True), key=bytes(32), unix_s=time.time() + 3600)
     assert not accept_command(future, state)
@@ -126,7 +126,9 @@ def test_onboard_loop_with_a_key_obeys_only_signed_commands():
         assert loop.setpoint.depth_m == 2.0
         loop.handle(_signed(message_interval("ATTITUDE", 2.0)))
         assert loop.rates.rate_hz["ATTITUDE"] == 2.0
-        assert (loop.signing.rejected_unsigned, loop.signing.accepted) == (2, 2)
+        c = loop.gate.counts
+        assert (c.unsigned, c.accepted) == (2, 2)
+        assert loop.stats.summary()["sig_unsigned"] == 2
         # telemetry and sensors need no signature
         loop.handle(_parse(mavlink.MAVLink_scaled_pressure2_message(10, 1013.25, 0, 2000, 0).pack(mavlink.MAVLink(None, 1, 1))))
         assert loop.stats.rejected_inputs == 0 and len(loop._queue) == 1
