@@ -1,6 +1,6 @@
 """`jetloop ground` (live view, recorder, commands) and `jetloop plot` (a recording's plots).
 
-    jetloop ground --link udpin:0.0.0.0:14550 [--record DIR] [--key KEYFILE]
+    jetloop ground [--link udpin:127.0.0.1:14550] [--record DIR] [--key KEYFILE]
                    [--rates ATTITUDE=10,NAMED_VALUE_FLOAT=5] [--cmd "depth 1.5"]...
                    [--duration S | --once] [--plain]
     jetloop plot REC.tlog --out DIR [--vehicle V.toml]
@@ -10,6 +10,12 @@ updates the `Station` model, sends a GCS HEARTBEAT at 1 Hz (so a udpin vehicle l
 the ground is) and, once the vehicle's first HEARTBEAT arrives, the requested stream rates
 (SET_MESSAGE_INTERVAL) and the `--cmd` commands. The view redraws 4 times a second and keeps
 running through link loss, garbage and truncated packets: the station says what happened.
+
+The default link listens on 127.0.0.1 only (the HIL and `jetloop onboard` on this machine): a
+vehicle on another machine is named explicitly, best by the interface it is reached on
+(`--link udpin:192.168.2.1:14550` on a BlueROV tether) rather than every interface (0.0.0.0),
+because a udpin link answers whoever spoke last, so any host that can reach the port would
+receive the ground's (signed) commands and could feed the view false telemetry.
 """
 
 from __future__ import annotations
@@ -134,8 +140,9 @@ def run_view(session: GroundSession, duration_s: float | None = None, once: bool
 def configure(parser) -> None:
     from ground.commands import COMMAND_HELP
 
-    parser.add_argument("--link", default="udpin:0.0.0.0:14550",
-                        help="udpin:HOST:PORT, udpout:HOST:PORT or /dev/ttyXXX:BAUD (default udpin:0.0.0.0:14550)")
+    parser.add_argument("--link", default="udpin:127.0.0.1:14550",
+                        help="udpin:HOST:PORT, udpout:HOST:PORT or /dev/ttyXXX:BAUD (default udpin:127.0.0.1:14550, "
+                             "this machine only; a vehicle elsewhere: udpin:INTERFACE_ADDRESS:14550)")
     parser.add_argument("--record", default=None, metavar="DIR", help="record every packet to DIR/ground-*.tlog")
     parser.add_argument("--max-mb", type=float, default=64.0, help="start a new .tlog after this many MB (default 64)")
     parser.add_argument("--key", default=None, metavar="KEYFILE",

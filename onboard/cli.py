@@ -2,11 +2,19 @@
 
     jetloop onboard --link udpout:127.0.0.1:14560 [--ground udpout:127.0.0.1:14550] [--vehicle V.toml]
                     [--lockstep | --realtime] [--output hil|pwm] [--allocator qp|baseline]
-                    [--no-compensation] [--rate HZ] [--duration S]
+                    [--no-compensation] [--rate HZ] [--duration S] [--key KEYFILE] [--ground-system ID]...
 
 `--lockstep` runs on the vehicle clock of the sensor stream and answers every SYSTEM_TIME frame
 marker (pair it with `jetloop hil --lockstep`); `--realtime` (default) ticks on the wall clock,
 as against a real ArduSub autopilot. Telemetry goes to `--ground` when given, else back on `--link`.
+
+Security (onboard.signing.CommandGate): with `--key`, commands and setpoints must be MAVLink 2
+signed with that key; only source systems given by `--ground-system` (default 255, QGroundControl's
+and MAVProxy's) may command, and only this vehicle (system 1) or everyone (0) may be addressed;
+setpoints outside the vehicle file's [envelope] are refused. Every refusal is counted in the
+NAMED_VALUE_FLOAT telemetry and in the summary printed at exit. Nothing listens on a default
+address: `--link` is required and both links bind only the host they name (udpout to
+127.0.0.1 binds 127.0.0.1).
 """
 
 from __future__ import annotations
@@ -33,6 +41,9 @@ def configure(parser) -> None:
     parser.add_argument("--key", default=None, metavar="KEYFILE",
                         help="MAVLink 2 signing key (32 raw bytes or 64 hex digits): unsigned, forged or "
                              "replayed commands are refused and counted")
+    parser.add_argument("--ground-system", type=int, action="append", default=None, metavar="ID",
+                        help="source system id allowed to command (repeatable; default 255, QGroundControl/MAVProxy); "
+                             "commands and setpoints from any other system are ignored and counted")
     parser.add_argument("--rate", type=float, default=None, metavar="HZ", help="control rate (default: the IMU rate)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of loop time")
     parser.add_argument("--idle-exit", type=float, default=None, metavar="S",
@@ -42,12 +53,14 @@ def configure(parser) -> None:
 def run(args) -> int:
     from onboard.link import Link, LinkError
     from onboard.loop import LoopConfig, OnboardLoop, VehicleClock, WallClock
-    from onboard.signing import SigningError, load_key
+    from onboard.signing import GCS_SYSTEMS, CommandGate, SigningError, load_key
     from onboard.vehicle import VehicleFileError, load_vehicle
 
     try:
         vehicle = load_vehicle(args.vehicle)
         key = load_key(args.key) if args.key else None
+        ground_systems = tuple(args.ground_system) if args.ground_system else GCS_SYSTEMS
+        CommandGate(None, ground_systems)  # checks the ids before anything opens a socket
     except (VehicleFileError, SigningError) as exc:
         print(f"jetloop onboard: {exc}", file=sys.stderr)
         return 2
@@ -63,7 +76,7 @@ def run(args) -> int:
         return 2
     config = LoopConfig(control_rate_hz=rate, output=args.output, allocator=args.allocator,
                         compensation=not args.no_compensation, estimator_backend=args.estimator,
-                        signing_key=key)
+                        signing_key=key, ground_systems=ground_systems)
     clock = VehicleClock() if args.lockstep else WallClock()
     loop = OnboardLoop(vehicle, link, clock, config, ground=ground)
     print(f"jetloop onboard: {vehicle.name} on {args.link} ({'lock-step' if args.lockstep else 'real time'}, "
@@ -84,6 +97,8 @@ def run(args) -> int:
         print(f"jetloop onboard: {why}; {s['steps']} steps, step median {s['step_median_ms']:.2f} ms, "
               f"p99 {s['step_p99_ms']:.2f} ms, failsafes {s['failsafe_entries']}, "
               f"rejected inputs {s['rejected_inputs']}, link {link.stats()}", flush=True)
+        print("jetloop onboard: security " + ", ".join(f"{k} {v}" for k, v in loop.stats.security.summary().items()),
+              flush=True)
         link.close()
         if ground is not None:
             ground.close()

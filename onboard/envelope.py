@@ -42,6 +42,11 @@ def _finite(*values) -> bool:
         return False
 
 
+def _f(v: float, decimals: int) -> str:
+    """A refused value, short enough for a STATUSTEXT: fixed decimals, or 3 digits when huge."""
+    return f"{v:.{decimals}f}" if abs(v) < 1000 else f"{v:.3g}"
+
+
 def _num(v) -> str:
     try:
         return f"{float(v):.6g}"
@@ -56,20 +61,20 @@ def position_target_violation(env, msg) -> str | None:
     if not mask & IGNORE_Z and not body and _finite(msg.z):
         depth = float(msg.z)
         if depth > env.max_depth_m:
-            return f"setpoint refused: depth {depth:.1f} m > max {env.max_depth_m:.1f} m"
+            return f"setpoint refused: depth {_f(depth, 1)} m > max {env.max_depth_m:.1f} m"
         if depth < env.min_depth_m:
-            return f"setpoint refused: depth {depth:.1f} m < min {env.min_depth_m:.1f} m"
+            return f"setpoint refused: depth {_f(depth, 1)} m < min {env.min_depth_m:.1f} m"
     if not (mask & IGNORE_VX and mask & IGNORE_VY):
         vx = 0.0 if mask & IGNORE_VX else msg.vx
         vy = 0.0 if mask & IGNORE_VY else msg.vy
         if _finite(vx, vy):
             speed = math.hypot(float(vx), float(vy))
             if speed > env.max_speed_m_s:
-                return f"setpoint refused: speed {speed:.2f} > max {env.max_speed_m_s:.2f} m/s"
+                return f"setpoint refused: speed {_f(speed, 2)} > max {env.max_speed_m_s:.2f} m/s"
     if not mask & IGNORE_VZ and _finite(msg.vz) and abs(float(msg.vz)) > env.max_heave_speed_m_s:
-        return f"setpoint refused: heave {abs(float(msg.vz)):.2f} > max {env.max_heave_speed_m_s:.2f} m/s"
+        return f"setpoint refused: heave {_f(abs(float(msg.vz)), 2)} > max {env.max_heave_speed_m_s:.2f} m/s"
     if not mask & IGNORE_YAW_RATE and _finite(msg.yaw_rate) and abs(float(msg.yaw_rate)) > env.max_yaw_rate_rad_s:
-        return f"setpoint refused: yaw rate {abs(float(msg.yaw_rate)):.2f} > max {env.max_yaw_rate_rad_s:.2f} rad/s"
+        return f"setpoint refused: yaw rate {_f(abs(float(msg.yaw_rate)), 2)} > max {env.max_yaw_rate_rad_s:.2f} rad/s"
     return None
 
 
