@@ -296,6 +296,7 @@ class Link:
             self._accept(m)
             m = self._parse(b"")
         while datagram and len(self.mav.buf) - self.mav.buf_index > 0:
+            self.bad_packets += 1  # a frame that runs past the end of its datagram (length failed)
             self._resync(bytes(self.mav.buf[self.mav.buf_index + 1:]), drop_pending=True)
             m = self._parse(b"")
             while m is not None:
