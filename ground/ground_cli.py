@@ -55,6 +55,10 @@ class GroundSession:
         self.messages_in = 0
 
     def send(self, msg) -> bytes:
+        if self.link.mav.signing.sign_outgoing:
+            from onboard.signing import refresh_timestamp
+
+            refresh_timestamp(self.link.mav)  # a restarted robot judges a new stream by its clock
         buf = self.link.send(msg)
         if self.recorder is not None:
             self.recorder.record(buf, msg.get_type(), outgoing=True)

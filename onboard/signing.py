@@ -101,6 +101,15 @@ def enable_signing(mav, key: bytes, link_id: int = 0, unix_s: float | None = Non
     s.allow_unsigned_callback = (lambda _mav, _msg_id: True) if accept_unsigned_incoming else None
 
 
+def refresh_timestamp(mav, unix_s: float | None = None) -> None:
+    """Bring a signing sender's timestamp up to its clock (never back). pymavlink only adds 1
+    (10 us) per packet sent, so a ground that sends one heartbeat a second falls ~1 s behind
+    real time every second, and after a minute a robot that restarts (new stream) would refuse
+    it as a replay; the spec wants the timestamp to follow the clock. Call before each send."""
+    s = mav.signing
+    s.timestamp = max(s.timestamp, signing_timestamp(time.time() if unix_s is None else unix_s))
+
+
 def is_signed(msg) -> bool:
     buf = msg.get_msgbuf()
     return len(buf) > 2 and buf[0] == 0xFD and bool(buf[2] & SIGNED_FLAG)

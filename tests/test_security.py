@@ -28,7 +28,7 @@ from conftest import free_udp_port
 from ground.commands import arm, depth_yaw, manual, set_mode, velocity
 from onboard.link import Link
 from onboard.loop import LoopConfig, OnboardLoop, WallClock
-from onboard.signing import MAX_STREAMS, NEW_STREAM_MAX_AGE, enable_signing
+from onboard.signing import MAX_STREAMS, NEW_STREAM_MAX_AGE, enable_signing, signing_timestamp
 from onboard.vehicle import load_vehicle
 
 KEY = hashlib.sha256(b"jetloop security test").digest()
@@ -215,6 +215,30 @@ def test_ground_systems_are_configurable():
             OnboardLoop(V, r.link, WallClock(), LoopConfig(ground_systems=(0,)))
     finally:
         r.close()
+
+
+def test_a_long_running_signed_ground_is_obeyed_by_a_robot_that_just_started(robot):
+    """pymavlink adds only 10 us to the signing timestamp per packet: a ground up for 10 minutes
+    with a heartbeat a second would stamp 10 minutes behind real time, and a robot that just
+    (re)started refuses a new stream more than 60 s behind its clock. GroundSession.send brings
+    the timestamp up to the clock first, so its command is obeyed."""
+    from ground.ground_cli import GroundSession
+
+    stale = signing_timestamp(time.time() - 600) + 600
+    mav = mavlink.MAVLink(None, 255, 190)
+    enable_signing(mav, KEY)
+    mav.signing.timestamp = stale
+    robot.send(bytes(depth_yaw(1.25).pack(mav)))  # what the ground would send without the refresh
+    assert robot.loop.gate.counts.replayed == 1 and robot.loop.setpoint.depth_m != 1.25
+    ground = GroundSession(f"udpout:127.0.0.1:{robot.link.local_address[1]}", key=KEY)
+    try:
+        ground.link.mav.signing.timestamp = stale
+        ground.send(depth_yaw(1.25))
+        m = robot.link.recv(5.0)
+        robot.loop.handle(m)
+        assert robot.loop.setpoint.depth_m == 1.25 and robot.loop.gate.counts.accepted == 1
+    finally:
+        ground.close()
 
 
 # -- envelope and command parameters --------------------------------------------------------------------
