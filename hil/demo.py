@@ -207,13 +207,13 @@ def run_closed_loop(
     history: bool = True,
     on_period=None,
     on_start=None,
-    stop=None,
+    halt=None,
 ) -> ClosedLoopResult:
     """Plant + onboard + recorder over loopback UDP in lock-step; returns what happened.
 
     `history=False`: the endpoint keeps no truth/command lists (long runs); `on_period(endpoint)`
     runs after every period; `on_start({"onboard": pid, "recorder": pid})` once the parties run
-    (empty with threads); `stop()` true ends the flight early, as finished. For soaks (hil.soak).
+    (empty with threads); `halt()` true ends the flight early, as finished. For soaks (hil.soak).
     """
     use_fork = processes and "fork" in mp.get_all_start_methods()
     ctx = mp.get_context("fork") if use_fork else None
@@ -272,7 +272,7 @@ def run_closed_loop(
             progress(f"flying {duration_s:.0f} s of mission in lock-step")
         n = int(round(duration_s / frame_s))
         try:
-            while ep.k < n and not (stop is not None and stop()):
+            while ep.k < n and not (halt is not None and halt()):
                 ep.step()
                 if progress and ep.k % int(round(5 / frame_s)) == 0:
                     progress(f"  t = {ep.time_s:5.1f} s")
