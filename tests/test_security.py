@@ -44,6 +44,16 @@ def packet(msg, key=None, src=255, comp=190, link_id=0, unix_s=None) -> bytes:
     return bytes(msg.pack(mav))
 
 
+def _v1(msg) -> bytes:
+    """The same message as a MAVLink 1 packet (0xFE), which cannot be signed: a downgrade attempt."""
+    from pymavlink.dialects.v10 import ardupilotmega as mavlink1
+
+    m1 = getattr(mavlink1, type(msg).__name__)(*(getattr(msg, f) for f in msg.fieldnames))
+    out = bytes(m1.pack(mavlink1.MAVLink(None, 255, 190)))
+    assert out[0] == 0xFE
+    return out
+
+
 def altered(buf: bytes, index: int, value: int) -> bytes:
     """`buf` with one byte changed and, when it is in the header or payload, the CRC made good
     again (the CRC is no secret: X.25 over bytes 1..payload end, plus the message's CRC_EXTRA),
@@ -118,6 +128,7 @@ def test_every_signing_case_over_udp_is_refused_counted_and_reported(robot):
     cases = [  # (name, bytes, verdict, depth if accepted)
         ("signed with the key", good, "accepted", 1.0),
         ("unsigned", packet(depth_yaw(1.1)), "unsigned", None),
+        ("MAVLink 1 (no room for a signature)", _v1(depth_yaw(1.1)), "unsigned", None),
         ("the same signed packet again", good, "replayed", None),
         ("signed with another key", packet(depth_yaw(1.2), OTHER_KEY, unix_s=now + 1), "bad", None),
         # a captured packet moved to a new stream (link id 9) to dodge the replay check: the
