@@ -153,6 +153,31 @@ def _rows_wrench(y, T, gain, weights, a, b, e1, pos):
     return wrench
 
 
+def azimuth_yaw_map(v: Vehicle, unit: int = 0, beta_rad: float = 0.0):
+    """(num, den) of the net yaw moment per newton of thrust per rad of azimuth of one unit, the
+    seed-004 transients included (spec 3 and 4.1, small azimuth about neutral):
+
+        N / (T alpha) = L cos(beta) + g s (L H_F1y(s) - H_M1z(s))
+
+    L = (r x e_alpha)_z, the lever of the tangential thrust (0.11 m on the reference vehicle);
+    g = gain_per_newton; s H(s) because the rows are driven by the azimuth rate. The thrust T
+    cancels: every unit and every thrust level has the same map, so no split of a yaw demand over
+    azimuth turns escapes it. Its right-half-plane zeros (`np.roots(num)`) bound how fast an
+    azimuth-made yaw moment can be shaped, the reaction included.
+    """
+    at = v.effects.azimuth_transient
+    u = v.units[unit]
+    F = model.jet_frame(0.0, 0.0, u.neutral[0], u.neutral[1])
+    lever = float(u.position[0] * F[1, 1] - u.position[1] * F[1, 0])
+    nF, dF = model.transfer_function("f1y", at.f1y)
+    nM, dM = model.transfer_function("m1z", at.m1z)
+    g = at.gain_per_newton
+    den = np.polymul(dF, dM)
+    cross = np.polysub(lever * np.polymul(nF, dM), np.polymul(nM, dF))
+    num = np.polyadd(lever * math.cos(beta_rad) * den, g * np.polymul([1.0, 0.0], cross))
+    return num, den
+
+
 @dataclass(frozen=True)
 class TransientPrediction:
     """Predicted transient over one control step (step means), per unit and summed.
@@ -315,7 +340,9 @@ def allocate_compensated(allocator, compensator: TransientCompensator, wrench_de
     Not every row is cancelled (`COMPENSATED_ROWS`, `LATERAL_AXES`). Cancelling a transient that
     needs the azimuths to turn excites the transient again through the same turn: for the yaw
     moment the loop gain is g K_M1z / (r cos beta), about 8 / cos(beta) near M1z's 29 rad/s mode,
-    and F1y's 49 rad/s resonance does the same on the lateral force. Measured open loop (demand
+    and F1y's 49 rad/s resonance does the same on the lateral force. `azimuth_yaw_map` gives the
+    net azimuth -> yaw map with the transients: right-half-plane zeros at 21.4 +- 22.7j rad/s,
+    the same for every unit and thrust, so neither a split over units nor more thrust helps. Measured open loop (demand
     [0, 0, 2, 0, 0, 0] N then [0.5, 0, 2, 0, 0, 0.1]): cancelling M1z or F1y/F2z in full, or all
     rows at 0.3, ends in rate-limit chatter even from the free response alone; the axial losses
     in full (made up by thrust, no turning needed) plus half the lateral forces without their yaw
@@ -379,6 +406,7 @@ __all__ = [
     "REPLAN_TOL_N",
     "LATERAL_AXES",
     "discretise_row",
+    "azimuth_yaw_map",
     "servo_motion",
     "TransientPrediction",
     "TransientCompensator",

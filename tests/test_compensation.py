@@ -19,6 +19,7 @@ from onboard.allocation import AllocationConfig, QpAllocator
 from onboard.compensation import (
     TransientCompensator,
     allocate_compensated,
+    azimuth_yaw_map,
     compensate,
     discretise_row,
     servo_motion,
@@ -260,3 +261,47 @@ def test_row_weights_are_checked(vehicle):
     for bad in ((1, 1, 1), (1, 2, 0, 1, 0), (1, -0.1, 0, 1, 0), (np.nan, 0, 0, 1, 0)):
         with pytest.raises(ValueError, match="row_weights"):
             TransientCompensator(vehicle, DT, row_weights=bad)
+
+
+def test_azimuth_made_yaw_has_right_half_plane_zeros_set_by_the_m1z_mode(vehicle):
+    """Why the M1z reaction cannot be compensated by turning the azimuths (spec 3 and 4.1).
+
+    One unit at small azimuth alpha, thrust T: tangential thrust T cos(b) L alpha about z, lateral
+    force g T F1y[alpha'] at lever L, reaction -g T M1z[alpha']. Per newton and per rad:
+    N / (T alpha) = L cos(b) + g s (L H_F1y(s) - H_M1z(s)), with the seed-004 rows (Tables 2, 3 at
+    75 % PWM, spec 4.1). Hand-evaluated here from the rows' coefficients: at DC only the thrust
+    acts (L cos b); near the lightly damped M1z mode (about sqrt(b_M) = 29 rad/s) the reaction is
+    several times the thrust's own moment; the map has zeros in the right half plane there, the
+    same for every unit and every thrust (T cancels), so a causal azimuth correction cannot cancel
+    it (it chattered at the rate limit when tried)."""
+    at = vehicle.effects.azimuth_transient
+    g = at.gain_per_newton
+    u = vehicle.units[0]
+    # lever of the tangential direction e2 = z x e1 at r: (r x e2)_z = rx e1x + ry e1y (e1 horizontal)
+    L = u.position[0] * u.neutral[0] + u.position[1] * u.neutral[1]
+    assert L == pytest.approx(0.11, abs=1e-4)
+    K_f, a_f, b_f, c_f, d_f, e_f, g_f = at.f1y
+    K_m, a_m, b_m, c_m, d_m = at.m1z
+
+    def by_hand(s, beta=0.0):
+        h_f1y = K_f * (s * s + a_f * s + b_f) / ((s * s + c_f * s + d_f) * (s * s + e_f * s + g_f))
+        h_m1z = K_m * s * s / (s ** 4 + a_m * s ** 3 + b_m * s * s + c_m * s + d_m)
+        return L * np.cos(beta) + g * s * (L * h_f1y - h_m1z)
+
+    for beta in (0.0, -0.3):
+        num, den = azimuth_yaw_map(vehicle, 0, beta)
+        for s in (1e-9, 2j, 10j, 29j, 3.0 + 40j):
+            assert np.polyval(num, s) / np.polyval(den, s) == pytest.approx(by_hand(s, beta), rel=1e-9)
+    num, den = azimuth_yaw_map(vehicle)
+    assert np.polyval(num, 0) / np.polyval(den, 0) == pytest.approx(L, rel=1e-9)  # DC: thrust only
+    w_mode = np.sqrt(b_m)
+    assert w_mode == pytest.approx(29.0, abs=0.1)
+    assert abs(by_hand(1j * w_mode)) > 5 * L  # the reaction dwarfs the thrust's moment at the mode
+    rhp = [z for z in np.roots(num) if z.real > 0]
+    assert rhp, np.roots(num)
+    assert min(abs(z) for z in rhp) == pytest.approx(31.2, abs=0.5)  # 21.4 +- 22.7j
+    # every unit has the same map (the units are the same jet, rotated)
+    for i in range(1, vehicle.n_units):
+        n_i, d_i = azimuth_yaw_map(vehicle, i)
+        np.testing.assert_allclose(n_i, num, rtol=1e-9)
+        np.testing.assert_allclose(d_i, den, rtol=1e-9)
