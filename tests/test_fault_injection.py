@@ -4,6 +4,7 @@ sensor faults, their marks in the recording, the `jetloop hil` flags, and the cl
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -58,3 +59,292 @@ def test_joint_angles_refuse_nan_wrong_message_and_missing_joints():
         codec.decode_joint_angles(codec.encode_joint_angles(1.0, (0.0,) * 2, (0.0,) * 2), 3)
     with pytest.raises(codec.CodecError, match="not ACTUATOR_OUTPUT_STATUS"):
         codec.decode_joint_angles(codec.heartbeat(), 4)
+
+
+# --- the plan and the pure fault functions ----------------------------------------------------------
+
+from hil.faults import (  # noqa: E402
+    DRAWS_PER_PACKET,
+    DepthJump,
+    FaultPlan,
+    FaultPlanError,
+    FaultyLink,
+    JetFault,
+    StuckJoint,
+    actuator_command,
+    imu_fault,
+    injection_events,
+    link_fate,
+    pressure_offset_pa,
+    read_injections,
+)
+from onboard.vehicle import load_vehicle  # noqa: E402
+
+V = load_vehicle()
+K = V.n_units
+
+
+def test_the_older_faults_name_is_the_plan():
+    from hil.endpoint import Faults
+
+    f = Faults(imu_dropouts_s=((1.0, 2.0),), garbage_times_s=(1.5,), garbage_bytes=10)
+    assert isinstance(f, FaultPlan) and not f.link_faults and not f.empty
+    assert FaultPlan().empty
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(loss=0.31), r"FaultPlan.loss must be a fraction 0..0.3"),
+    (dict(duplicate=-0.1), r"FaultPlan.duplicate must be a fraction"),
+    (dict(delay_s=math.inf), r"FaultPlan.delay_s must be a finite time"),
+    (dict(loss=0.1, loss_window_s=(5.0, 4.0)), r"loss_window_s must satisfy 0 <= t0 < t1"),
+    (dict(imu_nan_s=((1.0,),)), r"imu_nan_s\[0\] must be a window"),
+    (dict(jets=(JetFault(1, 1.0, 0.0),)), r"jets\[0\].*0 <= efficiency < 1"),
+    (dict(stuck_joints=(StuckJoint(1, "roll", 0.0),)), r"stuck_joints\[0\].*'azimuth' or 'elevation'"),
+    (dict(depth_jumps=(DepthJump(1.0, math.nan),)), r"depth_jumps\[0\].*finite offset"),
+])
+def test_a_bad_plan_is_refused_with_the_field_named(kwargs, match):
+    with pytest.raises(FaultPlanError, match=match):
+        FaultPlan(**kwargs)
+
+
+def test_a_unit_the_vehicle_lacks_is_refused():
+    with pytest.raises(FaultPlanError, match=r"jets\[0\].unit must be 1..4"):
+        FaultPlan(jets=(JetFault(5, 0.0, 1.0),)).check_units(K)
+    with pytest.raises(FaultPlanError, match=r"stuck_joints\[0\].unit must be 1..4"):
+        FaultPlan(stuck_joints=(StuckJoint(0, "azimuth", 1.0),)).check_units(K)
+
+
+def test_actuator_command_dead_weak_and_stuck_hand_computed():
+    u = np.array([40.0, 50.0, 60.0, 70.0, 0.1, 0.2, 0.3, 0.4, -0.1, -0.2, -0.3, -0.4])
+    plan = FaultPlan(jets=(JetFault(2, 0.0, 5.0), JetFault(4, 0.5, 6.0)),
+                     stuck_joints=(StuckJoint(3, "elevation", 5.0),))
+    assert np.array_equal(actuator_command(plan, u, 4.99, {}), u)  # nothing before t0
+    got = actuator_command(plan, u, 5.0, {(3, "elevation"): 0.25})
+    want = u.copy()
+    want[1] = 0.0  # jet 2 dead
+    want[2 * K + 2] = 0.25  # unit 3's elevation held where it was at t0
+    assert np.array_equal(got, want)
+    got = actuator_command(plan, u, 6.0, {(3, "elevation"): 0.25})
+    want[3] = 0.5 * 70.0  # jet 4 weak: half the commanded speed
+    assert np.array_equal(got, want)
+
+
+def test_sensor_faults_in_their_windows():
+    plan = FaultPlan(imu_freeze_s=((1.0, 2.0),), imu_nan_s=((1.5, 3.0),),
+                     depth_jumps=(DepthJump(4.0, 0.3, 6.0), DepthJump(5.0, -0.1)))
+    assert [imu_fault(plan, t) for t in (0.99, 1.0, 1.49, 1.5, 2.99, 3.0)] == [
+        None, "freeze", "freeze", "nan", "nan", None]
+    rho, g = V.environment.rho, V.environment.g
+    assert pressure_offset_pa(plan, 3.99, rho, g) == 0.0
+    assert pressure_offset_pa(plan, 4.0, rho, g) == pytest.approx(rho * g * 0.3, rel=1e-12)
+    assert pressure_offset_pa(plan, 5.5, rho, g) == pytest.approx(rho * g * 0.2, rel=1e-12)
+    assert pressure_offset_pa(plan, 6.0, rho, g) == pytest.approx(rho * g * -0.1, rel=1e-12)
+
+
+def test_injection_events_say_when_each_fault_begins_and_ends():
+    plan = FaultPlan(loss=0.2, loss_window_s=(2.0, 4.0), jets=(JetFault(2, 0.0, 5.0),),
+                     imu_freeze_s=((3.0, 3.5),), depth_jumps=(DepthJump(6.0, 0.3),))
+    assert injection_events(plan) == [
+        (2.0, "INJECT link loss 0.20"), (3.0, "INJECT imu frozen"), (3.5, "INJECT END imu frozen"),
+        (4.0, "INJECT END link loss"), (5.0, "INJECT jet 2 dead"), (6.0, "INJECT depth jump +0.300m")]
+    assert all(len(text) <= 50 for _, text in injection_events(plan))  # STATUSTEXT.text is 50 chars
+
+
+def test_link_fate_from_the_draws():
+    plan = FaultPlan(loss=0.2, delay_s=0.02, jitter_s=0.01, duplicate=0.1, reorder=0.05,
+                     reorder_window_s=(1.0, 2.0))
+    assert link_fate(plan, 0.5, (0.19, 0.0, 0.0, 0.0)).lost  # u0 < loss
+    f = link_fate(plan, 0.5, (0.2, 0.05, 0.0, 0.5))  # kept; u1 < 0.1: duplicated; outside the reorder window
+    assert (f.lost, f.copies, f.reorder) == (False, 2, False)
+    assert f.delay_s == pytest.approx(0.02 + 0.5 * 0.01)
+    f = link_fate(plan, 1.5, (0.9, 0.1, 0.04, 0.0))
+    assert (f.copies, f.reorder, f.delay_s) == (1, True, 0.02)
+
+
+# --- the faulty link, over real loopback UDP ---------------------------------------------------------
+
+from onboard.link import Link  # noqa: E402
+import pymavlink.dialects.v20.ardupilotmega as mavlink2  # noqa: E402
+
+
+class Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+@pytest.fixture
+def pair():
+    """(plant side: udpin, controller side: udpout to it), the plant side has heard its peer."""
+    a = Link("udpin:127.0.0.1:0")
+    b = Link(f"udpout:127.0.0.1:{a.local_address[1]}", source_system=1, source_component=191)
+    b.send(codec.heartbeat())
+    assert a.recv(2.0) is not None and a.has_peer
+    yield a, b
+    a.close()
+    b.close()
+
+
+def numbered(i: int):
+    return mavlink2.MAVLink_named_value_int_message(0, b"i", i)
+
+
+def drain(link, first_timeout=0.5):
+    out = []
+    m = link.recv(first_timeout)
+    while m is not None:
+        out.append(m)
+        m = link.recv(0.05)
+    return out
+
+
+def send_frames(faulty, clock, n, per_frame=50, period=0.01, msg=numbered):
+    for f in range(0, n, per_frame):
+        clock.t = (f // per_frame) * period
+        with faulty.batch():
+            for i in range(f, min(f + per_frame, n)):
+                faulty.send(msg(i))
+
+
+def binomial_bound(p, n):
+    return 4.0 * math.sqrt(p * (1 - p) / n)  # 4 sigma: a fixed seed either passes or fails for good
+
+
+def test_outgoing_loss_fraction_and_what_the_tap_saw(pair):
+    a, b = pair
+    clock, tapped = Clock(), []
+    n, p = 3000, 0.2
+    faulty = FaultyLink(a, FaultPlan(loss=p), clock, seed=11, tap=lambda pkt, name: tapped.append(pkt))
+    send_frames(faulty, clock, n)
+    got = drain(b)
+    lost = faulty.out.lost
+    assert len(got) == n - lost == len(tapped)
+    assert abs(lost / n - p) < binomial_bound(p, n)
+    assert [bytes(m.get_msgbuf()) for m in got] == tapped  # the recording holds what crossed
+    assert [m.value for m in got] == sorted(set(m.value for m in got))  # in order, no repeats
+
+
+def test_the_same_seed_loses_the_same_packets(pair):
+    a, b = pair
+    runs = []
+    for _ in range(2):
+        clock = Clock()
+        faulty = FaultyLink(a, FaultPlan(loss=0.3), clock, seed=5)
+        send_frames(faulty, clock, 400)
+        runs.append([m.value for m in drain(b)])
+    other = FaultyLink(a, FaultPlan(loss=0.3), Clock(), seed=6)
+    send_frames(other, Clock(), 400)
+    assert runs[0] == runs[1]
+    assert [m.value for m in drain(b)] != runs[0]
+
+
+def test_the_frame_marker_is_never_lost_in_lock_step(pair):
+    a, b = pair
+    clock = Clock()
+    faulty = FaultyLink(a, FaultPlan(loss=0.3, delay_s=0.05, reorder=0.5), clock, seed=1)
+    send_frames(faulty, clock, 500, per_frame=10,
+                msg=lambda i: mavlink2.MAVLink_system_time_message(0, i))
+    assert [m.time_boot_ms for m in drain(b)] == list(range(500))
+    assert faulty.out.passed == 0  # no draw was even made for them
+
+
+def test_delay_holds_a_packet_until_its_frame(pair):
+    a, b = pair
+    clock = Clock()
+    faulty = FaultyLink(a, FaultPlan(delay_s=0.02, delay_window_s=(0.0, 0.05)), clock, seed=0)
+    with faulty.batch():
+        faulty.send(numbered(1))  # at t = 0: due at 0.02
+    for t in (0.01, 0.02):
+        clock.t = t
+        with faulty.batch():
+            pass
+        got = drain(b, 0.2)
+        assert [m.value for m in got] == ([] if t < 0.02 else [1])
+    clock.t = 0.05  # the window has ended: no delay
+    with faulty.batch():
+        faulty.send(numbered(2))
+    assert [m.value for m in drain(b)] == [2]
+
+
+def test_jitter_spreads_the_delay_uniformly(pair):
+    a, b = pair
+    clock = Clock()
+    faulty = FaultyLink(a, FaultPlan(delay_s=0.02, jitter_s=0.03), clock, seed=3)
+    arrival = {}
+    for k in range(200):  # one packet per 10 ms frame; read what each frame delivers
+        clock.t = k * 0.01
+        with faulty.batch():
+            if k < 100:
+                faulty.send(numbered(k))
+        for m in drain(b, 0.02):
+            arrival[m.value] = round(clock.t - m.value * 0.01, 6)
+    assert sorted(arrival) == list(range(100))
+    delays = np.array(list(arrival.values()))
+    # frames are 10 ms: a delay of 0.02 + U(0, 0.03) s goes out with the frame at or after it
+    assert delays.min() >= 0.02 and delays.max() <= 0.05 + 1e-9
+    assert set(np.round(delays, 2)) == {0.03, 0.04, 0.05}  # 0.02 only for u = 0 exactly
+
+
+def test_duplicates_arrive_twice_as_the_same_packet(pair):
+    a, b = pair
+    clock = Clock()
+    n, p = 2000, 0.1
+    faulty = FaultyLink(a, FaultPlan(duplicate=p), clock, seed=2)
+    send_frames(faulty, clock, n)
+    got = drain(b)
+    dups = faulty.out.duplicated
+    assert len(got) == n + dups and abs(dups / n - p) < binomial_bound(p, n)
+    twice = [x for x, y in zip(got, got[1:]) if x.get_msgbuf() == y.get_msgbuf()]
+    assert len(twice) == dups  # byte for byte the same packet, sequence number included
+
+
+def test_reordered_packets_arrive_after_the_next_one(pair):
+    a, b = pair
+    clock = Clock()
+    n, p = 2000, 0.1
+    faulty = FaultyLink(a, FaultPlan(reorder=p, reorder_window_s=(0.0, 10.0)), clock, seed=4)
+    send_frames(faulty, clock, n)
+    clock.t = 10.0  # past the window: one more packet lets a held one out
+    with faulty.batch():
+        faulty.send(numbered(n))
+    values = [m.value for m in drain(b)]
+    assert sorted(values) == list(range(n + 1))  # nothing lost
+    swaps = sum(1 for x, y in zip(values, values[1:]) if y < x)
+    assert swaps == faulty.out.reordered
+    # a packet is held only when none is held already, so slightly fewer than p of them
+    assert abs(swaps / n - p * (1 - p)) < binomial_bound(p, n)
+
+
+def test_incoming_loss_counts_every_arrival(pair):
+    a, b = pair
+    clock = Clock()
+    n, p = 1000, 0.3
+    faulty = FaultyLink(a, FaultPlan(loss=p), clock, seed=8)
+    got = []
+    for f in range(0, n, 50):  # a frame's worth at a time: the socket buffer never overflows
+        with b.batch():
+            for i in range(f, f + 50):
+                b.send(numbered(i))
+        deadline = time.monotonic() + 2.0
+        while faulty.arrivals < f + 50 and time.monotonic() < deadline:
+            m = faulty.recv(0.1)
+            if m is not None:
+                got.append(m.value)
+    assert faulty.arrivals == n and faulty.into.passed == n
+    assert len(got) == n - faulty.into.lost
+    assert abs(faulty.into.lost / n - p) < binomial_bound(p, n)
+    assert faulty.stats()["injected"]["in"]["lost"] == faulty.into.lost
+
+
+def test_incoming_delay_delivers_at_the_due_vehicle_time(pair):
+    a, b = pair
+    clock = Clock()
+    faulty = FaultyLink(a, FaultPlan(delay_s=0.03), clock, seed=0)
+    b.send(numbered(7))
+    assert faulty.recv(1.0) is None and faulty.arrivals == 1  # arrived, held
+    clock.t = 0.02
+    assert faulty.recv(0.05) is None
+    clock.t = 0.03
+    assert faulty.recv(0.0).value == 7
