@@ -22,6 +22,14 @@ thrust (eq. 15) at n_max and the unit's estimated axial inflow. After the solve 
 force is turned back into (n, alpha, beta) exactly (inverse of d(alpha, beta) and of eq. 15),
 the angles and n are clipped to their limits, and the achieved wrench is recomputed from the
 clipped command with the forward model, so what is reported is what the jets will do.
+
+Unit health (`set_health`, from onboard.monitor): a weak unit with efficiency e_i reaches only
+e_i times its commanded speed, so it gives at most T(e_i n_max, V_a) (= e_i^2 T_max without
+inflow) and its speed command is the speed the thrust needs divided by e_i; a dead unit (e_i = 0)
+gives nothing: its thrust rows collapse to 0 <= d' f <= 0, so f_i = 0, and its joints stay where
+they are. A stuck joint is fixed at its measured angle: the linearisation point is that angle and
+its travel window is [0, 0], so the unit's force stays in the plane the joint allows. Only the
+bounds and A's values change, in place: the QP is still set up once and warm-started.
 """
 
 from __future__ import annotations
@@ -245,11 +253,13 @@ def evaluate(n, alpha, beta, nu_r, pos, e1, tp):
 
 
 @njit(cache=True)
-def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, u, ax, inf):
+def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, u, ax, inf, eff, free):
     """Fill the QP data of one step (q, l, u, A values); return T_max and the joint windows.
 
-    Window: da in [max(-step, -lim - a0), min(step, lim - a0)], same for beta (rate * dt and the
-    angle limits). Rows per unit i, over f_i: d' f in [0, T_cap]; (e_alpha - k d)' f <= 0 and
+    Window: da in [max(-s, -lim - a0), min(s, lim - a0)] with s = step * free (rate * dt and the
+    angle limits; free[i] = (1 or 0 for the azimuth, 1 or 0 for the elevation): 0 = stuck), same
+    for beta. T_max = T(eff_i n_max, V_a): a unit of efficiency eff_i (0 = dead) reaches eff_i of
+    its commanded speed. Rows per unit i, over f_i: d' f in [0, T_cap]; (e_alpha - k d)' f <= 0 and
     >= 0 for k = cos(b0) tan(da_hi), cos(b0) tan(da_lo); likewise e_beta with tan(db_hi),
     tan(db_lo). T_cap = T_max / sqrt(1 + k_a^2 + k_b^2) keeps |f_i| <= T_max (inner polytope).
     """
@@ -258,14 +268,18 @@ def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, 
     Va = axial_inflow(nu_r, pos, F)
     t_max = np.empty(k)
     win = np.empty((k, 4))
-    n_max = np.full(k, tp[7])
+    n_max = np.empty(k)
+    for i in range(k):
+        n_max[i] = tp[7] * eff[i]
     tm = thrust_of_speed(n_max, Va, tp)
     for i in range(k):
         t_max[i] = max(tm[i], 0.0)
-        win[i, 0] = max(-step, -lim - a0[i])
-        win[i, 1] = min(step, lim - a0[i])
-        win[i, 2] = max(-step, -lim - b0[i])
-        win[i, 3] = min(step, lim - b0[i])
+        sa = step * free[i, 0]
+        sb = step * free[i, 1]
+        win[i, 0] = max(-sa, -lim - a0[i])
+        win[i, 1] = min(sa, lim - a0[i])
+        win[i, 2] = max(-sb, -lim - b0[i])
+        win[i, 3] = min(sb, lim - b0[i])
         cb = math.cos(b0[i])
         kk = (cb * math.tan(win[i, 1]), cb * math.tan(win[i, 0]), math.tan(win[i, 3]), math.tan(win[i, 2]))
         ka = max(kk[0] * kk[0], kk[1] * kk[1])
@@ -293,28 +307,35 @@ def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, 
 
 
 @njit(cache=True)
-def command_of_forces(f, a0, b0, win, nu_r, pos, e1, tp, lim):
+def command_of_forces(f, a0, b0, win, nu_r, pos, e1, tp, lim, eff):
     """(n, alpha, beta) of planned force vectors f (k x 3): exact inverse, then the limits.
 
     alpha, beta from f_i / |f_i|, clipped to this step's window and +-angle_limit; T_i = f_i . d_i
-    at the clipped angles (the part of f_i they can give), within [0, T_max at the new inflow];
-    n_i from the inverse of seed 000 eq. 15, within [0, n_max].
+    at the clipped angles (the part of f_i they can give), within [0, T(eff_i n_max) at the new
+    inflow]; the speed the propeller needs from the inverse of seed 000 eq. 15, commanded as that
+    speed / eff_i (the unit reaches eff_i of its command), within [0, n_max]. A dead unit
+    (eff_i = 0) gets n = 0 and keeps its joints where they are.
     """
     k = f.shape[0]
     a, b = frame_angles(f, e1, a0, b0)
     for i in range(k):
+        if eff[i] <= 0.0:
+            a[i], b[i] = a0[i], b0[i]
         a[i] = min(max(min(max(a[i], a0[i] + win[i, 0]), a0[i] + win[i, 1]), -lim), lim)
         b[i] = min(max(min(max(b[i], b0[i] + win[i, 2]), b0[i] + win[i, 3]), -lim), lim)
     F = jet_frames(a, b, e1)
     Va = axial_inflow(nu_r, pos, F)
-    tm = thrust_of_speed(np.full(k, tp[7]), Va, tp)
+    n_max = np.empty(k)
+    for i in range(k):
+        n_max[i] = tp[7] * eff[i]
+    tm = thrust_of_speed(n_max, Va, tp)
     T = np.empty(k)
     for i in range(k):
         t = f[i, 0] * F[i, 0, 0] + f[i, 1] * F[i, 0, 1] + f[i, 2] * F[i, 0, 2]
         T[i] = min(max(t, 0.0), max(tm[i], 0.0))
     n = speed_of_thrust(T, Va, tp)
     for i in range(k):
-        n[i] = min(max(n[i], 0.0), tp[7])
+        n[i] = min(max(n[i] / eff[i], 0.0), tp[7]) if eff[i] > 0.0 else 0.0
     return n, a, b
 
 
@@ -358,9 +379,11 @@ class JetGeometry:
         """T(n, V_a) of each unit (seed 000 eq. 15)."""
         return thrust_of_speed(np.asarray(n, float), np.asarray(v_axial, float), self.tp)
 
-    def thrust_max(self, v_axial) -> np.ndarray:
-        """T_max(J) = T(n_max, V_a): the most a jet gives against its axial inflow (>= 0)."""
-        return np.maximum(self.thrust(np.full(self.k, self.n_max), v_axial), 0.0)
+    def thrust_max(self, v_axial, efficiency=None) -> np.ndarray:
+        """T_max(J) = T(e n_max, V_a): the most a jet of efficiency e (default 1) gives against
+        its axial inflow (>= 0)."""
+        e = np.ones(self.k) if efficiency is None else np.asarray(efficiency, float)
+        return np.maximum(self.thrust(self.n_max * e, v_axial), 0.0)
 
     def speed(self, thrust, v_axial) -> np.ndarray:
         """n with T(n, V_a) = thrust (inverse of seed 000 eq. 15, closed form)."""
@@ -443,6 +466,31 @@ class _Base:
         self.config = config if config is not None else AllocationConfig.from_vehicle(v)
         self.W = self.config.weight_matrix()
         self.previous: Allocation | None = None
+        self.set_health()
+
+    def set_health(self, efficiency=None, stuck_alpha_rad=None, stuck_beta_rad=None) -> None:
+        """Tell the allocator what each unit can still do (onboard.monitor.UnitHealth's fields).
+
+        efficiency: k values in [0, 1] (None: all 1): the unit reaches e_i of its commanded speed,
+        0 = dead (no thrust; excluded). stuck_alpha_rad, stuck_beta_rad: k angles each, NaN where
+        the joint is free (None: all free); a stuck joint is held at its angle (within the limits).
+        """
+        k = self.k
+        eff = np.ones(k) if efficiency is None else _vector(efficiency, k, "efficiency (per unit)")
+        if not np.all((eff >= 0.0) & (eff <= 1.0)):  # also false for NaN
+            raise ValueError(f"efficiency: expected {k} values in [0, 1] (1 healthy, 0 dead), got {efficiency!r}")
+        stuck = []
+        for name, val in (("stuck_alpha_rad", stuck_alpha_rad), ("stuck_beta_rad", stuck_beta_rad)):
+            a = np.full(k, np.nan) if val is None else _vector(val, k, f"{name} (NaN where free)")
+            if np.any(np.isinf(a)):
+                raise ValueError(f"{name}: expected finite angles (rad) or NaN where free, got {val!r}")
+            stuck.append(np.clip(a, -self.geo.angle_limit, self.geo.angle_limit))
+        self.efficiency = eff
+        self.stuck_alpha_rad, self.stuck_beta_rad = stuck
+        self._stuck_a = np.isfinite(stuck[0])
+        self._stuck_b = np.isfinite(stuck[1])
+        self._free = np.ascontiguousarray(np.stack([~self._stuck_a, ~self._stuck_b], axis=1).astype(float))
+        self._nominal = bool(np.all(eff == 1.0) and not self._stuck_a.any() and not self._stuck_b.any())
 
     def _inputs(self, wrench, alpha, beta, nu_r):
         k = self.k
@@ -457,6 +505,9 @@ class _Base:
         nu = np.zeros(6) if nu_r is None else _vector(nu_r, 6, "nu_r (body velocity relative to the water)")
         if not (np.all(np.isfinite(a0)) and np.all(np.isfinite(b0))):
             raise ValueError("current joint angles must be finite")
+        if not self._nominal:  # a stuck joint is where it is stuck, whatever was commanded
+            a0 = np.where(self._stuck_a, self.stuck_alpha_rad, a0)
+            b0 = np.where(self._stuck_b, self.stuck_beta_rad, b0)
         if not np.all(np.isfinite(nu)):
             nu = np.zeros(6)  # a diverged estimate must not poison the thrust limits
         return tau, a0, b0, nu
@@ -464,7 +515,8 @@ class _Base:
     def _finish(self, tau, n, alpha, beta, nu, status, solve_time, iters, fallback, t_max, qp_time=0.0):
         """Exact forward model of the final command: thrust at its own inflow, achieved wrench."""
         g = self.geo
-        T, force, achieved = evaluate(n, alpha, beta, nu, g.position, g.e1, g.tp)
+        n_actual = n if self._nominal else n * self.efficiency  # what a weak unit reaches
+        T, force, achieved = evaluate(n_actual, alpha, beta, nu, g.position, g.e1, g.tp)
         res = achieved - tau
         err = float(np.sqrt(res @ self.W @ res)) if np.all(np.isfinite(res)) else float("nan")
         return Allocation(
@@ -499,14 +551,19 @@ class PseudoInverseAllocator(_Base):
         tau, a0, b0, nu = self._inputs(wrench, alpha, beta, nu_r)
         g = self.geo
         Va = g.axial_inflow(nu, a0, b0)
-        t_max = g.thrust_max(Va)
+        eff = self.efficiency
+        t_max = g.thrust_max(Va, eff)
         if np.all(np.isfinite(tau)):
-            T = np.clip(np.linalg.pinv(g.effectiveness(a0, b0)) @ tau, 0.0, t_max)
+            E = g.effectiveness(a0, b0)
+            E[:, eff <= 0.0] = 0.0  # a dead unit's column: pinv gives it nothing
+            T = np.clip(np.linalg.pinv(E) @ tau, 0.0, t_max)
             status = "solved"
         else:
             T = np.zeros(self.k)
             status = "fallback: non-finite demand; jets off"
-        n = np.clip(g.speed(T, Va), 0.0, g.n_max)
+        live = eff > 0.0
+        n = np.zeros(self.k)
+        n[live] = np.clip(g.speed(T, Va)[live] / eff[live], 0.0, g.n_max)
         out = self._finish(tau, n, a0, b0, nu, status, time.perf_counter() - t0, 0, status != "solved", t_max)
         if commit:
             self.commit(out)
@@ -564,7 +621,7 @@ class QpAllocator(_Base):
         z = np.zeros(k)
         plan_step(np.zeros(6), z, z, np.zeros(6), self.geo.position, self.geo.e1, self.geo.tp,
                   self.geo.angle_limit, 0.0, self._BtW, 0.0, np.zeros(3 * k), self._q, self._l, self._u, self._ax,
-                  self._inf)
+                  self._inf, np.ones(k), np.ones((k, 2)))
         self._A_pattern = (indices, indptr, (m, 3 * k))
         A = sp.csc_matrix((self._ax.copy(), indices, indptr), shape=(m, 3 * k))
         self._solver = osqp.OSQP()
@@ -583,7 +640,7 @@ class QpAllocator(_Base):
         z = np.zeros(k)
         f = np.tile([1.0, 0.0, 0.0], (k, 1))
         win = np.tile([-0.01, 0.01, -0.01, 0.01], (k, 1))
-        n, a, b = command_of_forces(f, z, z, win, np.zeros(6), g.position, g.e1, g.tp, g.angle_limit)
+        n, a, b = command_of_forces(f, z, z, win, np.zeros(6), g.position, g.e1, g.tp, g.angle_limit, np.ones(k))
         evaluate(n, a, b, np.zeros(6), g.position, g.e1, g.tp)
 
     def constraints(self, alpha, beta, nu_r=None):
@@ -593,8 +650,12 @@ class QpAllocator(_Base):
         b0 = np.clip(np.asarray(beta, float), -g.angle_limit, g.angle_limit)
         nu = np.zeros(6) if nu_r is None else np.asarray(nu_r, float)
         q, l, u, ax = np.zeros(3 * self.k), np.zeros_like(self._l), np.zeros_like(self._u), np.zeros_like(self._ax)
+        if not self._nominal:
+            a0 = np.where(self._stuck_a, self.stuck_alpha_rad, a0)
+            b0 = np.where(self._stuck_b, self.stuck_beta_rad, b0)
         t_max, _ = plan_step(np.zeros(6), a0, b0, nu, g.position, g.e1, g.tp, g.angle_limit,
-                             self.window_step_rad(), self._BtW, 0.0, np.zeros(3 * self.k), q, l, u, ax, self._inf)
+                             self.window_step_rad(), self._BtW, 0.0, np.zeros(3 * self.k), q, l, u, ax, self._inf,
+                             self.efficiency, self._free)
         indices, indptr, shape = self._A_pattern
         return sp.csc_matrix((ax, indices, indptr), shape=shape).toarray(), l, u, t_max
 
@@ -612,7 +673,7 @@ class QpAllocator(_Base):
         t_max, win = plan_step(tau if finite else np.zeros(6), a0, b0, nu, g.position, g.e1, g.tp,
                                g.angle_limit, self.window_step_rad(), self._BtW,
                                self._wc if with_change else 0.0, f_prev,
-                               self._q, self._l, self._u, self._ax, self._inf)
+                               self._q, self._l, self._u, self._ax, self._inf, self.efficiency, self._free)
         if not finite:
             return self._fallback(tau, a0, b0, nu, "non-finite demand", 0.0, 0, t_max, commit)
         x, info = self._update_and_solve(with_change)
@@ -624,7 +685,8 @@ class QpAllocator(_Base):
                 f"over time budget ({elapsed * 1e6:.0f} us > {self.config.time_budget_s * 1e6:.0f} us)")
             return self._fallback(tau, a0, b0, nu, reason, elapsed, info.iter, t_max, commit)
         f = np.asarray(x, float).reshape(self.k, 3)
-        n, alpha, beta = command_of_forces(f, a0, b0, win, nu, g.position, g.e1, g.tp, g.angle_limit)
+        n, alpha, beta = command_of_forces(f, a0, b0, win, nu, g.position, g.e1, g.tp, g.angle_limit,
+                                           self.efficiency)
         out = self._finish(tau, n, alpha, beta, nu, status, time.perf_counter() - t_start, info.iter, False, t_max,
                            info.run_time)
         if commit:
@@ -667,6 +729,10 @@ class QpAllocator(_Base):
             alpha = np.clip(np.clip(self.previous.alpha_rad, a0 - step, a0 + step), -lim, lim)
             beta = np.clip(np.clip(self.previous.beta_rad, b0 - step, b0 + step), -lim, lim)
             n = np.clip(self.previous.n_rev_s, 0.0, self.geo.n_max)
+            if not self._nominal:  # dead units stay off, stuck joints where they are
+                n = np.where(self.efficiency > 0.0, n, 0.0)
+                alpha = np.where(self._stuck_a, a0, alpha)
+                beta = np.where(self._stuck_b, b0, beta)
             what = "previous command kept"
         else:
             alpha, beta, n = a0.copy(), b0.copy(), np.zeros(self.k)

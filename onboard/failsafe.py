@@ -5,16 +5,19 @@ States (`Mode`): DISARMED (outputs safe), ARMED (the controller drives the jets)
 `FailsafeState` and an event, returning the next state; the loop owns the clock and the link.
 
     DISARMED --arm, IMU fresh, estimator healthy---------> ARMED
-    DISARMED --arm, otherwise------------------------------> DISARMED (reason: why refused)
+    DISARMED --arm, otherwise (incl. an IMU fault)---------> DISARMED (reason: why refused)
     ARMED    --tick, no IMU for imu_timeout_s (0.3 s)-------> FAILSAFE (reason)
     ARMED    --tick, estimator diverged--------------------> FAILSAFE (reason)
+    ARMED    --tick, IMU fault (frozen: samples that never change)-> FAILSAFE (reason)
     ARMED    --disarm----------------------------------------> DISARMED
     FAILSAFE --anything but disarm/reset (IMU back, arm)----> FAILSAFE (recovery is not automatic)
     FAILSAFE --disarm or reset (explicit operator action)---> DISARMED, then arm again
 
 The safe output (`safe_command`) is zero propeller speed with every joint at neutral: the
 vehicle is positively buoyant (about 1.5 N on the reference vehicle), so it ascends slowly and
-stays upright on its righting moment. The loop should also `Estimator.reset()` on recovery,
+stays upright on its righting moment. A frozen IMU (onboard.monitor: identical samples) is treated
+as a lost one: its samples do not refresh `last_imu_s`, and `imu_fault` trips the failsafe at once
+rather than after the timeout. The loop should also `Estimator.reset()` on recovery,
 since arming is refused while the estimator still reports divergence.
 """
 
@@ -76,21 +79,25 @@ def on_imu(state: FailsafeState, time_s: float) -> FailsafeState:
 
 
 def on_tick(state: FailsafeState, time_s: float, estimator_diverged: bool = False,
-            estimator_reason: str = "") -> FailsafeState:
-    """Check the conditions at time_s: IMU older than the timeout, or estimator divergence."""
+            estimator_reason: str = "", imu_fault: str = "") -> FailsafeState:
+    """Check the conditions at time_s: IMU older than the timeout, an IMU fault (e.g. "frozen",
+    from onboard.monitor: its samples are not fresh ones), or estimator divergence."""
     t = _time("on_tick", time_s)
     if state.mode is not Mode.ARMED:
         return state
     age = state.imu_age_s(t)
     if age > state.imu_timeout_s + _EPS_S:
         return _go(state, Mode.FAILSAFE, f"no IMU for {age:.2f} s (limit {state.imu_timeout_s:.2f} s)", t)
+    if imu_fault:
+        return _go(state, Mode.FAILSAFE, f"IMU {imu_fault}", t)
     if estimator_diverged:
         return _go(state, Mode.FAILSAFE, f"estimator diverged: {estimator_reason or 'unspecified'}", t)
     return state
 
 
-def on_arm(state: FailsafeState, time_s: float, estimator_diverged: bool = False) -> FailsafeState:
-    """Arm request: granted from DISARMED when the IMU is fresh and the estimator healthy."""
+def on_arm(state: FailsafeState, time_s: float, estimator_diverged: bool = False,
+           imu_fault: str = "") -> FailsafeState:
+    """Arm request: granted from DISARMED when the IMU is fresh (and not faulty) and the estimator healthy."""
     t = _time("on_arm", time_s)
     if state.mode is Mode.ARMED:
         return state
@@ -100,6 +107,8 @@ def on_arm(state: FailsafeState, time_s: float, estimator_diverged: bool = False
     if age > state.imu_timeout_s + _EPS_S:
         why = "no IMU yet" if state.last_imu_s is None else f"no IMU for {age:.2f} s"
         return replace(state, reason=f"arm refused: {why}")
+    if imu_fault:
+        return replace(state, reason=f"arm refused: IMU {imu_fault}")
     if estimator_diverged:
         return replace(state, reason="arm refused: estimator diverged (reset it)")
     return _go(state, Mode.ARMED, "armed", t)

@@ -21,6 +21,14 @@ ground link when there is one, else on the main link): HEARTBEAT (MAV_TYPE_SUBMA
 SYS_STATUS at 1 Hz, ATTITUDE, NAMED_VALUE_FLOAT (depth, setpoints, allocation status,
 estimator rejections, loop timing) and a DEBUG_FLOAT_ARRAY "wrench" (demanded and achieved
 body wrench) at `telemetry_rate_hz`; STATUSTEXT when the failsafe trips or clears.
+
+Faults (issue #7, onboard.monitor): every received packet's sequence number, every sensor
+sample's age and values, ESC_TELEMETRY rpm and ACTUATOR_OUTPUT_STATUS joint angles feed a
+`FaultMonitor`, ticked with each command sent. NAMED_VALUE_FLOAT "faults" (the `Fault` bitmask)
+goes out with the other named values, STATUSTEXT "FAULT ..." / "CLEARED ..." on each change,
+SYS_STATUS health bits (motor outputs, gyro/accel, pressure) and drop_rate_comm follow the flags.
+A frozen IMU's samples reach neither the estimator nor the failsafe's freshness (which trips);
+a dead or weak jet and a stuck joint are handed to the allocator (`set_health`).
 """
 
 from __future__ import annotations
@@ -192,6 +200,7 @@ class LoopConfig:
     allocation_change_weight: float | None = None  # None: the allocator's default (AllocationConfig)
     estimator_backend: str = "filterpy"  # or "compiled": the same EKF equations in numba (onboard.estimator)
     signing_key: bytes | None = None  # MAVLink 2 signing on: unsigned commands refused (ground.commands)
+    fault_monitor: bool = True  # onboard.monitor: detect, report and reconfigure around faults
     ground_systems: tuple = GCS_SYSTEMS  # source systems whose commands/setpoints count (others: foreign)
 
     def __post_init__(self):
@@ -229,6 +238,10 @@ class LoopStats:
     overrun_log: deque = field(default_factory=lambda: deque(maxlen=100))  # the newest (t_s, wall_ms, cpu_ms) over it
     security: SecurityCounts = field(default_factory=SecurityCounts)  # signing, foreign, envelope (onboard.signing)
 
+    faults_seen: int = 0  # OR of every onboard.monitor.Fault flag ever raised
+    fault_events: deque = field(default_factory=lambda: deque(maxlen=10_000))  # (t_s, Fault, text)
+    frozen_imu: int = 0  # IMU samples kept out of the estimator because the IMU is frozen
+
     def summary(self) -> dict:
         st = np.asarray(self.step_time_s) * 1e3
         cpu = np.asarray(self.step_cpu_s) * 1e3
@@ -256,6 +269,8 @@ class LoopStats:
             "arm_refusals": self.arm_refusals,
             "rejected_inputs": self.rejected_inputs,
             "step_errors": self.step_errors,
+            "faults_seen": int(self.faults_seen),
+            "fault_events": [(t, int(f), text) for t, f, text in self.fault_events],
             **self.security.summary(),
         }
 
@@ -330,6 +345,17 @@ class OnboardLoop:
         self._started = False
         self._last_rx_wall = time.monotonic()
         self._next_error_text = -math.inf
+        self.monitor = None
+        self._health_version = 0
+        self._stuck_joints = None  # boolean mask (2k) of joints the monitor found stuck, or None
+        if config.fault_monitor:
+            from .monitor import FaultMonitor, MonitorConfig
+
+            self.monitor = FaultMonitor(MonitorConfig.from_vehicle(
+                vehicle, imu_timeout_s=config.imu_timeout_s, absolute_age=clock.lockstep,
+                # in real time a command reaches the servos up to a period late: at the rate limit
+                # that is rate * period (0.05 rad at 5 rad/s and 100 Hz) of honest mismatch
+                joint_tolerance_rad=0.05 if clock.lockstep else 0.1))
 
     @property
     def armed(self) -> bool:
@@ -397,6 +423,11 @@ class OnboardLoop:
         """One received message: a sensor sample into the queue, a setpoint or command applied.
         What does not decode (NaN, inf, a field out of range) is counted and dropped."""
         name = m.get_type()
+        mon = self.monitor
+        if mon is not None:
+            sysid = m.get_srcSystem()
+            if sysid:  # 0: a message object built in this process, never on a wire (no sequence)
+                mon.packet(sysid, m.get_srcComponent(), m.get_seq())
         verdict = self.gate.admit(m)  # signing, foreign system, envelope, arm/mode params: counted there
         for reply in verdict.replies:  # COMMAND_ACK DENIED / STATUSTEXT "setpoint refused: ..."
             (self.ground or self.link).send(reply)
@@ -410,10 +441,14 @@ class OnboardLoop:
                     return  # ArduSub's depth sensor is SCALED_PRESSURE2; the other is the board's
                 self._has_pressure2 |= name == "SCALED_PRESSURE2"
                 s = codec.decode_pressure(m)
+                if mon is not None:
+                    mon.sample_age(self.clock.now(), s.time_s)
                 self._observe(s.time_s)
                 self._enqueue(s.time_s, "depth", depth_from_pressure(s.press_abs_pa, self.vehicle))
             elif name == "ATTITUDE":
                 s = codec.decode_attitude(m)
+                if mon is not None:
+                    mon.sample_age(self.clock.now(), s.time_s)
                 self._observe(s.time_s)
                 self._enqueue(s.time_s, "attitude", s)
             elif name == "SYSTEM_TIME":
@@ -429,8 +464,18 @@ class OnboardLoop:
                 self.mode = MODES["manual"]
             elif name == "COMMAND_LONG":
                 self._on_command(m)
+            elif mon is None:
+                pass
+            elif name in codec.ESC_GROUPS:  # propeller speeds: the jets' health
+                first, rpm = codec.decode_rpm(m)
+                mon.rpm(self.clock.now(), first, rpm)
+            elif name == "ACTUATOR_OUTPUT_STATUS":  # smart servos' angles: stuck joints
+                t, alpha, beta = codec.decode_joint_angles(m, self.k)
+                mon.joints(t, alpha, beta)
         except (CodecError, ValueError, TypeError, AttributeError, OverflowError):
             self.stats.rejected_inputs += 1
+            if mon is not None and name in IMU_RANK:
+                mon.imu_invalid(self.clock.now())  # an IMU reading NaN / inf
 
     def _observe(self, t: float) -> None:
         self.clock.observe(t)
@@ -450,6 +495,13 @@ class OnboardLoop:
             return
         self._imu_rank = rank
         self._last_imu_stamp = s.time_s
+        mon = self.monitor
+        if mon is not None:
+            mon.sample_age(self.clock.now(), s.time_s)
+            if not mon.imu(s.time_s, s.accel_frd_m_s2, s.gyro_frd_rad_s):
+                self._observe(s.time_s)  # time moves on, but a frozen sample is not a fresh one
+                self.stats.frozen_imu += 1
+                return
         self._observe(s.time_s)
         self.fs_state = self._fs.on_imu(self.fs_state, self.clock.now())
         self._enqueue(s.time_s, "imu", s)
@@ -465,7 +517,7 @@ class OnboardLoop:
         if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             fs = self._fs
             if float(m.param1) >= 0.5:
-                self.fs_state = fs.on_arm(self.fs_state, now, self.estimator.diverged)
+                self.fs_state = fs.on_arm(self.fs_state, now, self.estimator.diverged, self._imu_fault())
                 if not self.armed:
                     result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
                     self.stats.arm_refusals += 1
@@ -520,6 +572,8 @@ class OnboardLoop:
                 self._next_error_text = t + 1.0
                 self._statustext(mavlink.MAV_SEVERITY_ERROR, f"step error: {exc}")  # jets safe
         self._was_enabled = self.armed and not failed
+        if self.monitor is not None:
+            self._monitor_tick(t, command, est)
         self.command = command
         elapsed = time.perf_counter() - t0
         cpu_s = time.thread_time() - c0
@@ -546,7 +600,7 @@ class OnboardLoop:
         est = self.estimator.estimate
         was_failsafe = self.failsafe_active
         self.fs_state = self._fs.on_tick(self.fs_state, t, self.estimator.diverged,
-                                         self.estimator.health.diverged_reason)
+                                         self.estimator.health.diverged_reason, self._imu_fault())
         if self.failsafe_active and not was_failsafe:
             self.stats.failsafe_entries += 1
             self._statustext(mavlink.MAV_SEVERITY_CRITICAL, f"FAILSAFE {self.fs_state.reason}"[:50])
@@ -577,6 +631,36 @@ class OnboardLoop:
         self.stats.fallbacks += int(bool(alloc.fallback))
         self.stats.limit_violations += self._violations(command)
         return est, command
+
+    def _imu_fault(self) -> str:
+        return "frozen" if self.monitor is not None and self.monitor.imu_frozen else ""
+
+    def _monitor_tick(self, t: float, command, est) -> None:
+        """Fault checks of this tick: events out as STATUSTEXT, unit health into the allocator."""
+        mon = self.monitor
+        try:
+            mon.tick(t, command, est.health)
+        except Exception as exc:  # a monitor bug must not stop the robot: say so, keep flying
+            if t >= self._next_error_text:
+                self._next_error_text = t + 1.0
+                self._statustext(mavlink.MAV_SEVERITY_ERROR, f"monitor error: {exc}")
+            return
+        events = mon.pop_events()
+        if events:
+            st = self.stats
+            st.faults_seen = int(mon.faults_seen)
+            for ev in events:
+                st.fault_events.append(ev)
+                sev = mavlink.MAV_SEVERITY_WARNING if ev[2].startswith("FAULT") else mavlink.MAV_SEVERITY_NOTICE
+                self._statustext(sev, ev[2])
+        if mon.health_version != self._health_version:
+            self._health_version = mon.health_version
+            h = mon.health
+            set_health = getattr(self.allocator, "set_health", None)
+            if set_health is not None:
+                set_health(h.efficiency, h.stuck_alpha_rad, h.stuck_beta_rad)
+            stuck = np.isfinite(np.array(h.stuck_alpha_rad + h.stuck_beta_rad, float))
+            self._stuck_joints = stuck if stuck.any() else None
 
     def _run_estimator(self) -> None:
         """Fuse the queued samples in time order, predicting between them with the held command."""
@@ -609,7 +693,10 @@ class OnboardLoop:
         tol = 1e-9
         bad = int(np.sum((n < -tol) | (n > v.thruster.n_max + tol)))
         bad += int(np.sum(np.abs(ang) > v.servo.angle_limit + tol))
-        bad += int(np.sum(np.abs(ang - self.command[k:]) > v.servo.rate_limit * self.period_s + 1e-6))
+        travel = np.abs(ang - self.command[k:]) > v.servo.rate_limit * self.period_s + 1e-6
+        if self._stuck_joints is not None:  # a stuck joint's command jumps to where it is stuck: no travel
+            travel &= ~self._stuck_joints
+        bad += int(np.sum(travel))
         return bad
 
     # -- output --------------------------------------------------------------------------------
@@ -702,6 +789,8 @@ class OnboardLoop:
             "in_rej": float(st.rejected_inputs),
             "link_bad": float(self.link.bad_packets + self.link.unknown_packets),
         }
+        if self.monitor is not None:
+            values["faults"] = float(int(self.monitor.faults))  # onboard.monitor.Fault bitmask
         values.update(self.stats.security.telemetry())  # sig_unsig, sig_bad, sig_replay, foreign, ... once non-zero
         for name, value in values.items():
             out.send(mavlink.MAVLink_named_value_float_message(ms, name.encode(), float(value)))
@@ -716,9 +805,21 @@ class OnboardLoop:
             health &= ~(S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL)
         if self.estimator.diverged:
             health &= ~S.MAV_SYS_STATUS_AHRS
+        drop = 0
+        mon = self.monitor
+        if mon is not None:
+            f = int(mon.faults)
+            F = type(mon.faults)
+            if f & (F.JET_DEAD | F.JET_WEAK | F.JOINT_STUCK):
+                health &= ~S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+            if f & (F.IMU_FROZEN | F.IMU_NAN | F.IMU_LOST):
+                health &= ~(S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL)
+            if f & F.DEPTH_JUMP:
+                health &= ~S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+            drop = min(int(round(mon.drop_rate * 10_000)), 10_000)  # c%
         load = int(min(step_s / self.period_s, 1.0) * 1000)
         errors = min(self.link.bad_packets + self.link.unknown_packets, 0xFFFF)
-        return S.MAVLink_sys_status_message(present, present, health, load, 0, -1, -1, 0, errors,
+        return S.MAVLink_sys_status_message(present, present, health, load, 0, -1, -1, drop, errors,
                                             min(self.stats.rejected_inputs, 0xFFFF), 0, 0, 0)
 
     def _statustext(self, severity: int, text: str) -> None:

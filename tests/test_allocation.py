@@ -426,3 +426,153 @@ def test_allocator_thrust_is_the_plant_model_thrust_with_inflow_off_too():
         va = rng.uniform(-1.0, 2.0, 200)
         expected = [model.jet_thrust(float(a), float(b), p) for a, b in zip(n, va)]
         np.testing.assert_allclose(geo.thrust(n, va), expected, rtol=1e-12, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------
+# Reconfiguration around unit faults (issue #7: onboard.monitor -> set_health)
+
+
+def d_hand(v, i, alpha, beta):
+    """Spec 3 thrust direction: d = cos b cos a e1 + cos b sin a e2 - sin b e3, e2 = (-e1y, e1x, 0)."""
+    e1 = np.array(v.units[i].neutral, float)
+    e2 = np.array([-e1[1], e1[0], 0.0])
+    return math.cos(beta) * math.cos(alpha) * e1 + math.cos(beta) * math.sin(alpha) * e2 - math.sin(beta) * np.array([0, 0, 1.0])
+
+
+def wrench_hand(v, thrust, alpha, beta):
+    """tau = sum_i [T_i d_i, r_i x T_i d_i] (spec 3)."""
+    tau = np.zeros(6)
+    for i, T in enumerate(thrust):
+        f = T * d_hand(v, i, alpha[i], beta[i])
+        tau[:3] += f
+        tau[3:] += np.cross(np.array(v.units[i].position, float), f)
+    return tau
+
+
+@pytest.fixture(scope="module")
+def health_qp(vehicle):
+    """One QP workspace for every health below: set_health only changes its bounds."""
+    return QpAllocator(vehicle, DT, AllocationConfig.from_vehicle(vehicle, **RELAXED))
+
+
+_share = st.floats(0.1, 0.9)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(dead=st.integers(0, 3), shares=st.lists(_share, min_size=4, max_size=4),
+       a=st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4),
+       b=st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4))
+def test_dead_unit_is_never_used_and_a_three_unit_wrench_is_still_met(vehicle, health_qp, dead, shares, a, b):
+    """Unit `dead` has efficiency 0. The demand is what the three others give at thrusts
+    share_i * T_max along their current directions (hand-computed, spec 3), so it is feasible
+    without moving a joint: the QP meets it (to the linearised direction polytope's precision, 5 %
+    of |force| and of |moment|; exactly with frozen joints in the hand case below), never uses the
+    dead unit (n = 0, T = 0, its joints left where they are) and breaks no limit."""
+    v, qp = vehicle, health_qp
+    eff = np.ones(4)
+    eff[dead] = 0.0
+    T_max = bollard_thrust(v, v.thruster.n_max)
+    T = np.array(shares) * T_max
+    T[dead] = 0.0
+    a0, b0 = np.array(a), np.array(b)
+    tau = wrench_hand(v, T, a0, b0)
+    qp.set_health(eff)
+    alloc = qp.allocate(tau, a0, b0, commit=False)
+    qp.set_health()
+    assert not alloc.fallback, alloc.status
+    assert alloc.n_rev_s[dead] == 0.0 and alloc.thrust_n[dead] == 0.0
+    assert alloc.alpha_rad[dead] == a0[dead] and alloc.beta_rad[dead] == b0[dead]
+    assert_within_limits(v, alloc, a0, b0, DT)
+    res = alloc.wrench_achieved - tau
+    assert np.linalg.norm(res[:3]) <= 0.05 * np.linalg.norm(tau[:3]) + 1e-3
+    assert np.linalg.norm(res[3:]) <= 0.05 * np.linalg.norm(tau[3:]) + 1e-4
+    assert qp.setups == 1
+
+
+def test_dead_unit_by_hand_heave_from_three_jets(vehicle):
+    """All joints frozen at beta = 0.6 (alpha = 0), unit 0 dead. Unit 2 sits opposite unit 0, so
+    without unit 0 the radial forces of 1 and 3 cancel each other but unit 2's does not: the only
+    exact answer to a pure heave demand of -Z = 3 sin(0.6) T N... is none; ask instead for exactly
+    what units 1, 2, 3 give at T = 1 N each (hand-computed wrench): the QP returns T = (0, 1, 1, 1)."""
+    v = vehicle
+    a0, b0 = np.zeros(4), np.full(4, 0.6)
+    T = np.array([0.0, 1.0, 1.0, 1.0])
+    tau = wrench_hand(v, T, a0, b0)
+    frozen = QpAllocator(v, 1e-9, exact(v))
+    frozen.set_health([0.0, 1.0, 1.0, 1.0])
+    alloc = frozen.allocate(tau, a0, b0)
+    assert not alloc.fallback, alloc.status
+    np.testing.assert_allclose(alloc.thrust_n, T, atol=2e-3)
+    assert alloc.n_rev_s[0] == 0.0
+    np.testing.assert_allclose(alloc.n_rev_s[1:], bollard_speed(v, 1.0), rtol=2e-3)
+    base = PseudoInverseAllocator(v, DT)
+    base.set_health([0.0, 1.0, 1.0, 1.0])
+    b = base.allocate(tau, a0, b0)
+    np.testing.assert_allclose(b.thrust_n, T, atol=1e-9)  # E t = tau has the exact solution t = T
+    assert b.n_rev_s[0] == 0.0
+
+
+def test_weak_unit_is_commanded_faster_and_capped_at_its_own_maximum(vehicle):
+    """Efficiency e = 0.5 on unit 2: it reaches e n_cmd, so T_max = rho D^4 (e n_max)^2 kt0 = e^2 T_max
+    (bollard), and a thrust T needs n_cmd = sqrt(T / (rho D^4 kt0)) / e. Joints frozen at beta = 0.6.
+
+    At equal elevations (1, -1, 1, -1) thrusts give no wrench (opposite units cancel), so the
+    thrusts are chosen orthogonal to it: both allocators then return that minimum-norm answer."""
+    v = vehicle
+    e = 0.5
+    a0, b0 = np.zeros(4), np.full(4, 0.6)
+    T = np.array([1.0, 0.75, 0.5, 0.75])  # 0.5 N is below e^2 T_max = 0.25 * T_max(~4 N)
+    assert T @ [1, -1, 1, -1] == 0.0
+    assert T[2] < e * e * bollard_thrust(v, v.thruster.n_max)
+    tau = wrench_hand(v, T, a0, b0)
+    eff = [1.0, 1.0, e, 1.0]
+    for alloc_ in (QpAllocator(v, 1e-9, exact(v)), PseudoInverseAllocator(v, DT)):
+        alloc_.set_health(eff)
+        alloc = alloc_.allocate(tau, a0, b0)
+        assert not alloc.fallback, alloc.status
+        np.testing.assert_allclose(alloc.thrust_n, T, atol=2e-3)  # the thrust the unit really gives
+        np.testing.assert_allclose(alloc.n_rev_s[2], bollard_speed(v, T[2]) / e, rtol=2e-3)
+        np.testing.assert_allclose(alloc.wrench_achieved, tau, atol=2e-3)
+        np.testing.assert_allclose(alloc.thrust_max_n[2], e * e * bollard_thrust(v, v.thruster.n_max), rtol=1e-9)
+    # a demand beyond the weak unit's cap: its thrust stops at e^2 T_max, at n_cmd = n_max
+    qp = QpAllocator(v, 1e-9, exact(v))
+    qp.set_health(eff)
+    big = qp.allocate(wrench_hand(v, [1.0, 2.0, 3.0, 2.0], a0, b0), a0, b0)
+    assert big.thrust_n[2] <= e * e * bollard_thrust(v, v.thruster.n_max) + 1e-9
+    assert big.n_rev_s[2] <= v.thruster.n_max
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(tau=_wrench, unit=st.integers(0, 3), joint=st.sampled_from(["alpha", "beta"]), angle=st.floats(-1.2, 1.2),
+       a=st.lists(st.floats(-1.2, 1.2), min_size=4, max_size=4), b=st.lists(st.floats(-1.2, 1.2), min_size=4, max_size=4))
+def test_stuck_joint_is_held_at_its_angle(vehicle, health_qp, tau, unit, joint, angle, a, b):
+    """Joint `joint` of `unit` stuck at `angle`: whatever the demand and wherever the last command
+    put it, the command keeps it at `angle`, the other joints travel at most rate * dt, no limit is broken, and the reported wrench is that of the joint at
+    its stuck angle."""
+    v, qp = vehicle, health_qp
+    stuck = np.full(4, np.nan)
+    stuck[unit] = angle
+    qp.set_health(None, stuck if joint == "alpha" else None, stuck if joint == "beta" else None)
+    a0, b0 = np.array(a), np.array(b)
+    alloc = qp.allocate(np.array(tau), a0, b0, commit=False)
+    got = alloc.alpha_rad if joint == "alpha" else alloc.beta_rad
+    assert got[unit] == angle
+    a_ref, b_ref = a0.copy(), b0.copy()
+    (a_ref if joint == "alpha" else b_ref)[unit] = angle  # where the joint really is
+    assert_within_limits(v, alloc, a_ref, b_ref, DT)
+    # what is reported is what the jets give with that joint where it is stuck (spec 3 by hand)
+    np.testing.assert_allclose(alloc.wrench_achieved, wrench_hand(v, alloc.thrust_n, alloc.alpha_rad, alloc.beta_rad),
+                               rtol=1e-5, atol=1e-9)
+    qp.set_health()
+
+
+def test_set_health_rejects_bad_values_clearly(vehicle):
+    qp = PseudoInverseAllocator(vehicle, DT)
+    with pytest.raises(ValueError, match=r"efficiency: expected 4 values in \[0, 1\]"):
+        qp.set_health([1.0, 1.5, 1.0, 1.0])
+    with pytest.raises(ValueError, match="efficiency: expected 4 values in"):
+        qp.set_health([1.0, float("nan"), 1.0, 1.0])
+    with pytest.raises(ValueError, match="efficiency .per unit.: expected 4 values"):
+        qp.set_health([1.0, 1.0])
+    with pytest.raises(ValueError, match="stuck_alpha_rad: expected finite angles"):
+        qp.set_health(None, [math.inf, math.nan, math.nan, math.nan])
