@@ -47,6 +47,7 @@ from .control import ManualAxes, Setpoint
 from .mavlink_codec import CodecError
 from .pwm import command_to_normalised, command_to_pwm
 from .sensors import depth_from_pressure
+from .history import PairRing, Ring
 from .vehicle import Vehicle
 from .signing import GCS_SYSTEMS, SecurityCounts
 
@@ -219,11 +220,12 @@ class LoopConfig:
 @dataclass
 class LoopStats:
     steps: int = 0
-    # Histories keep the newest `HISTORY` entries, so a robot running for hours does not grow.
-    step_time_s: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # wall time of estimate+control+compensate+allocate
-    step_cpu_s: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # the same step's CPU time (this thread)
-    solve_time_s: deque = field(default_factory=lambda: deque(maxlen=HISTORY))
-    weighted_error: deque = field(default_factory=lambda: deque(maxlen=HISTORY))
+    # Histories keep the newest `HISTORY` entries in arrays allocated up front (onboard.history.Ring),
+    # so a robot running for hours does not grow: a deque of floats grew for its first hour (hil.soak)
+    step_time_s: Ring = field(default_factory=lambda: Ring(HISTORY))  # wall time of estimate+control+compensate+allocate
+    step_cpu_s: Ring = field(default_factory=lambda: Ring(HISTORY))  # the same step's CPU time (this thread)
+    solve_time_s: Ring = field(default_factory=lambda: Ring(HISTORY))
+    weighted_error: Ring = field(default_factory=lambda: Ring(HISTORY))
     fallbacks: int = 0
     limit_violations: int = 0
     failsafe_entries: int = 0
@@ -231,11 +233,11 @@ class LoopStats:
     rejected_inputs: int = 0  # messages that did not decode (NaN / inf / malformed)
     step_errors: int = 0  # steps where a collaborator raised: the jets got the safe command
     ignored_imu: int = 0  # IMU messages of a lower-ranked source or out of order
-    commands: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # (t, command) sent
+    commands: PairRing = field(default_factory=lambda: PairRing(HISTORY))  # (t, command) sent
     # Over the whole run (not only the history): steps whose compute time exceeded the control period
     overruns_wall: int = 0
     overruns_cpu: int = 0
-    overrun_log: deque = field(default_factory=lambda: deque(maxlen=100))  # the newest (t_s, wall_ms, cpu_ms) over it
+    overrun_log: deque = field(default_factory=lambda: deque(maxlen=100))  # the newest (t_s, wall_ms, cpu_ms) over in CPU time
     security: SecurityCounts = field(default_factory=SecurityCounts)  # signing, foreign, envelope (onboard.signing)
 
     faults_seen: int = 0  # OR of every onboard.monitor.Fault flag ever raised
@@ -322,6 +324,7 @@ class OnboardLoop:
         self.prediction = None
         self.demand = np.zeros(6)
         self.stats = LoopStats()
+        self.stats.commands.reserve(3 * self.k)  # allocated here, not inside the first control step
         # the ground's signing and SET_MESSAGE_INTERVAL, onboard side (ground/commands.py)
         from .signing import CommandGate
         from .stream_rates import StreamRates
@@ -579,9 +582,10 @@ class OnboardLoop:
         cpu_s = time.thread_time() - c0
         self.stats.step_cpu_s.append(cpu_s)
         self.stats.step_time_s.append(elapsed)
-        if elapsed > self.period_s or cpu_s > self.period_s:
-            self.stats.overruns_wall += elapsed > self.period_s
-            self.stats.overruns_cpu += cpu_s > self.period_s
+        if elapsed > self.period_s:  # wall time: also whatever else the machine runs meanwhile
+            self.stats.overruns_wall += 1
+        if cpu_s > self.period_s:  # CPU time: this step's own work
+            self.stats.overruns_cpu += 1
             self.stats.overrun_log.append((t, elapsed * 1e3, cpu_s * 1e3))
         self.stats.steps += 1
         self.stats.commands.append((t, command.copy()))
