@@ -191,12 +191,12 @@ def numbered(i: int):
     return mavlink2.MAVLink_named_value_int_message(0, b"i", i)
 
 
-def drain(link, first_timeout=0.5):
+def drain(link, first_timeout=0.5, then=0.05):
     out = []
     m = link.recv(first_timeout)
     while m is not None:
         out.append(m)
-        m = link.recv(0.05)
+        m = link.recv(then)
     return out
 
 
@@ -278,7 +278,7 @@ def test_jitter_spreads_the_delay_uniformly(pair):
         with faulty.batch():
             if k < 100:
                 faulty.send(numbered(k))
-        for m in drain(b, 0.02):
+        for m in drain(b, 0.005, then=0.0):  # loopback: a datagram is there once sent
             arrival[m.value] = round(clock.t - m.value * 0.01, 6)
     assert sorted(arrival) == list(range(100))
     delays = np.array(list(arrival.values()))
@@ -348,3 +348,199 @@ def test_incoming_delay_delivers_at_the_due_vehicle_time(pair):
     assert faulty.recv(0.05) is None
     clock.t = 0.03
     assert faulty.recv(0.0).value == 7
+
+
+# --- the endpoint with a scripted controller (real sockets, lock-step, no onboard loop) ---------------
+
+import threading  # noqa: E402
+
+from hil.endpoint import HilEndpoint  # noqa: E402
+from hil.plant import Plant  # noqa: E402
+from hil.tlog import TlogWriter  # noqa: E402
+from onboard.pwm import command_to_normalised, command_to_pwm  # noqa: E402
+
+TAU_M = V.thruster.motor_time_constant
+
+
+def _controller(port, stop, command_at, seen):
+    """Answers every new frame marker with HIL_ACTUATOR_CONTROLS of command_at(t); keeps all it got."""
+    link = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=191)
+    link.send(codec.heartbeat(armed=True))
+    last = -1
+    while not stop.is_set():
+        m = link.recv(0.05)
+        if m is None:
+            continue
+        seen.append(m)
+        if m.get_type() == "SYSTEM_TIME" and m.time_boot_ms > last:
+            last = m.time_boot_ms
+            controls = list(command_to_normalised(V, command_at(last / 1e3))) + [0.0] * (16 - 3 * K)
+            link.send(mavlink2.MAVLink_hil_actuator_controls_message(last * 1000, controls, 0, 0))
+    link.close()
+
+
+def scripted_flight(plan, duration_s, command_at, tlog_path=None, seed=9):
+    """Fly the plant (0.5 m deep) against the scripted controller; returns (endpoint, what the
+    controller received, [(t, plant state)] after every period)."""
+    link = Link("udpin:127.0.0.1:0", source_system=1, source_component=1)
+    stop, seen, states = threading.Event(), [], []
+    ctl = threading.Thread(target=_controller, args=(link.local_address[1], stop, command_at, seen))
+    ctl.start()
+    tlog = TlogWriter(tlog_path) if tlog_path is not None else None
+    try:
+        ep = HilEndpoint(V, link, Plant(V, seed=seed, depth_m=0.5), faults=plan, tlog=tlog, seed=seed,
+                         reply_timeout_s=0.05, give_up_s=5.0,
+                         on_period=lambda e: states.append((e.time_s, e.plant.state.copy())))
+        ep.run(duration_s)
+    finally:
+        stop.set()
+        ctl.join()
+        if tlog is not None:
+            tlog.close()
+        link.close()
+    return ep, seen, states
+
+
+def state_at(states, t):
+    return next(x for ts, x in states if abs(ts - t) < 1e-9)
+
+
+LAY = Plant(V).layout
+N_CMD = 60.0
+
+
+def test_dead_and_weak_jets_show_in_the_propellers_and_the_esc_rpm_not_in_the_servo_output():
+    plan = FaultPlan(jets=(JetFault(2, 0.0, 0.3), JetFault(4, 0.5, 0.3)))
+    cmd = np.array([N_CMD] * K + [0.0] * 2 * K)
+    ep, seen, states = scripted_flight(plan, 1.0, lambda t: cmd)
+    # spec 4 motor lag n' = (e n_cmd - n) / tau_m from n(0) = 0; the command of frame t acts from t
+    # to t + 0.01, and the state recorded after frame t is at t (the plant advances at the next step)
+    def n_hat(t, e):
+        n03 = N_CMD * (1 - math.exp(-0.3 / TAU_M))
+        return e * N_CMD + (n03 - e * N_CMD) * math.exp(-(t - 0.3) / TAU_M)
+
+    n = state_at(states, 0.9)[LAY.n]
+    assert n[0] == pytest.approx(N_CMD * (1 - math.exp(-0.9 / TAU_M)), rel=1e-4)
+    assert n[1] == pytest.approx(n_hat(0.9, 0.0), abs=1e-3)  # dead: 0.03 rev/s left of 58.6
+    assert n[3] == pytest.approx(n_hat(0.9, 0.5), rel=1e-4)
+    esc = [m for m in seen if m.get_type() == "ESC_TELEMETRY_1_TO_4"]
+    servo = [m for m in seen if m.get_type() == "SERVO_OUTPUT_RAW"]
+    rpm = list(esc[-1].rpm)  # the last frame, t = 0.99
+    assert rpm[1] == round(60 * n_hat(0.99, 0.0)) <= 1  # rpm, rounded to the uint16 field
+    assert rpm[0] == round(60 * N_CMD * (1 - math.exp(-0.99 / TAU_M)))
+    assert rpm[3] == round(60 * n_hat(0.99, 0.5))
+    pwm = command_to_pwm(V, cmd)
+    assert [servo[-1].servo1_raw, servo[-1].servo2_raw, servo[-1].servo4_raw] == [pwm[0], pwm[1], pwm[3]]
+
+
+def test_a_stuck_joint_stays_at_its_angle_at_onset_and_the_feedback_says_so():
+    plan = FaultPlan(stuck_joints=(StuckJoint(1, "azimuth", 0.3),))
+
+    def command_at(t):
+        az = 0.2 if t < 0.5 else -0.3
+        return np.array([0.0] * K + [az] * K + [0.0] * K)
+
+    ep, seen, states = scripted_flight(plan, 1.0, command_at)
+    a_onset = state_at(states, 0.3)[LAY.alpha][0]
+    assert a_onset == pytest.approx(0.2, abs=1e-3)  # 10 servo time constants after the step
+    x = state_at(states, 0.99)
+    assert x[LAY.alpha][0] == pytest.approx(a_onset, abs=1e-12)  # stuck
+    assert x[LAY.alpha][1] == pytest.approx(-0.3, abs=1e-3)  # the others follow the command
+    fb = [m for m in seen if m.get_type() == "ACTUATOR_OUTPUT_STATUS"]
+    assert len(fb) == round(1.0 * V.sensors.attitude_rate)  # at the attitude rate
+    t, alpha, beta = codec.decode_joint_angles(fb[-1], K)
+    assert alpha[0] == pytest.approx(a_onset, abs=1e-6) and alpha[1] == pytest.approx(-0.3, abs=1e-3)
+    assert t == pytest.approx(1.0 - 1.0 / V.sensors.attitude_rate)
+
+
+def test_imu_freeze_and_nan_windows_in_the_sent_messages():
+    plan = FaultPlan(imu_freeze_s=((0.2, 0.4),), imu_nan_s=((0.6, 0.7),))
+    ep, seen, _ = scripted_flight(plan, 0.9, lambda t: np.zeros(3 * K))
+    imu = [m for m in seen if m.get_type() == "HIGHRES_IMU"]
+    t = np.array([m.time_usec / 1e6 for m in imu])
+    v = np.array([[m.xacc, m.yacc, m.zacc, m.xgyro, m.ygyro, m.zgyro] for m in imu])
+    assert np.all(np.diff(t) > 0)  # fresh time stamps throughout
+    frozen = (t >= 0.2 - 1e-9) & (t < 0.4 - 1e-9)
+    before = np.nonzero(t < 0.2 - 1e-9)[0][-1]
+    assert frozen.sum() == round(0.2 * V.sensors.imu_rate)
+    assert np.all(v[frozen] == v[before])  # the very values of the last sample before the freeze
+    nan = (t >= 0.6 - 1e-9) & (t < 0.7 - 1e-9)
+    assert nan.sum() == round(0.1 * V.sensors.imu_rate) and np.all(np.isnan(v[nan]))
+    rest = ~frozen & ~nan
+    assert np.all(np.isfinite(v[rest])) and len(np.unique(v[rest][:, 3])) == rest.sum()  # noise never repeats
+
+
+def test_depth_jump_is_a_pressure_step_of_rho_g_offset():
+    plan = FaultPlan(depth_jumps=(DepthJump(0.3, 0.3, 0.6),))
+    zero = np.zeros(3 * K)
+    _, seen, _ = scripted_flight(plan, 0.9, lambda t: zero)
+    _, clean, _ = scripted_flight(FaultPlan(), 0.9, lambda t: zero)
+
+    def pressure(msgs):
+        return {m.time_boot_ms: m.press_abs for m in msgs if m.get_type() == "SCALED_PRESSURE2"}
+
+    p, p0 = pressure(seen), pressure(clean)
+    assert p.keys() == p0.keys()
+    step_hpa = V.environment.rho * V.environment.g * 0.3 / 100.0  # p = p_atm + rho g d, in hPa
+    f32 = float(np.spacing(np.float32(1100.0)))  # press_abs is float32: one step near 1000 hPa
+    for ms in p:
+        want = step_hpa if 300 <= ms < 600 else 0.0
+        assert abs((p[ms] - p0[ms]) - want) <= 2 * f32, ms
+
+
+def _tlog_packets(path):
+    """(src (system, component), message type, packet bytes) of every packet in a .tlog, via pymavlink."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    out = []
+    while (m := conn.recv_match()) is not None:
+        if m.get_type() != "BAD_DATA":
+            out.append(((m.get_srcSystem(), m.get_srcComponent()), m.get_type(), bytes(m.get_msgbuf()),
+                         getattr(m, "_timestamp", None), m))
+    conn.close()
+    return out
+
+
+def test_lock_step_with_link_faults_costs_no_wall_time_and_records_what_crossed(tmp_path):
+    plan = FaultPlan(loss=0.3, loss_window_s=(0.2, 0.8), duplicate=0.1, reorder=0.1, delay_s=0.01,
+                     jitter_s=0.02, delay_window_s=(0.5, 1.0), jets=(JetFault(2, 0.0, 0.5),),
+                     imu_freeze_s=((0.3, 0.4),))
+    path = tmp_path / "hil.tlog"
+    t0 = time.monotonic()
+    ep, seen, _ = scripted_flight(plan, 1.0, lambda t: np.zeros(3 * K), tlog_path=path)
+    wall = time.monotonic() - t0
+    assert ep.stats.periods == 100 and ep.stats.resends == 0  # no reply timeout, however much was lost
+    assert wall < 5.0
+    inj = ep.link.stats()["injected"]
+    assert inj["out"]["lost"] > 0 and inj["in"]["lost"] > 0 and inj["out"]["duplicated"] > 0
+    assert inj["out"]["delayed"] > 0 and inj["out"]["reordered"] > 0
+
+    packets = _tlog_packets(path)
+    # the outgoing side of the recording is exactly what reached the controller, in order (mocap
+    # truth and the injector's marks are never sent)
+    sent = [p[2] for p in packets if p[0] == (1, 1) and p[1] != "ATT_POS_MOCAP"]
+    assert sent == [bytes(m.get_msgbuf()) for m in seen]
+    # the incoming side: the commands delivered, never the lost ones
+    cmds = [p for p in packets if p[1] == "HIL_ACTUATOR_CONTROLS"]
+    assert len(cmds) == ep.stats.received["HIL_ACTUATOR_CONTROLS"] < 100 + inj["in"]["duplicated"]
+    assert sum(p[1] == "SYSTEM_TIME" for p in packets) == 100  # the frame marker is never lost
+
+    marks = [(round(p[3] - 1_767_225_600, 6), p[4].text) for p in packets if p[0] == (1, 250)]
+    want = [(0.0, "INJECT link duplicate 0.10"), (0.0, "INJECT link reorder 0.10"),
+            (0.2, "INJECT link loss 0.30"), (0.3, "INJECT imu frozen"), (0.4, "INJECT END imu frozen"),
+            (0.5, "INJECT link delay 0.010s jitter 0.020s"), (0.5, "INJECT jet 2 dead"),
+            (0.8, "INJECT END link loss")]  # the delay's end (1.0 s) is after the last frame (0.99 s)
+    assert marks == want  # as pymavlink reads them (log time = epoch + vehicle time)
+    assert [(round(t, 6), text) for t, text in read_injections(path)] == want  # as ground.recording scans them
+    assert [p[1] for p in packets if p[0] == (1, 250)] == ["STATUSTEXT"] * len(want)
+
+    from ground.recording import read_recording
+
+    rec = read_recording(path)  # the marks do not disturb the diagnosis' reader
+    assert rec.vehicle_id == (1, 1) and rec.skipped.skipped_bytes == 0 and rec.skipped.bad_crc_packets == 0
+    assert "STATUSTEXT" not in rec.messages  # they are not the vehicle's
+
+    again = tmp_path / "again.tlog"
+    scripted_flight(plan, 1.0, lambda t: np.zeros(3 * K), tlog_path=again)
+    assert again.read_bytes() == path.read_bytes()  # deterministic in lock-step, faults and all
