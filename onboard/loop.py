@@ -677,6 +677,8 @@ class OnboardLoop:
                 est.time_s = t
                 self._est_started = True
             dt = t - est.time_s
+            if dt > 1.0:  # predict across at most the last second of a gap: a stamp 1e13 s ahead
+                est.time_s, dt = t - 1.0, 1.0  # (corrupt or hostile) took hours in 20 ms steps (fuzzing)
             while dt > 1e-7:
                 h = min(dt, 0.02)
                 est.predict(h, self.command)

@@ -68,6 +68,17 @@ def time_usec(t_s: float) -> int:
     return int(round(t_s * 1e6))
 
 
+MAX_TIME_S = 0xFFFFFFFF / 1e3  # time_boot_ms's range (49.7 days): the loop stamps its outputs with it
+
+
+def _vehicle_time(message: str, t_s: float) -> float:
+    """A received sample's time (s since boot), refused beyond what the loop can stamp its answers
+    with (a time_usec near 2^64 moved the loop's clock to 1.8e13 s and its outputs failed to pack)."""
+    if not t_s <= MAX_TIME_S:
+        raise CodecError(f"{message}: time {t_s:.6g} s since boot is beyond time_boot_ms's range ({MAX_TIME_S:.0f} s)")
+    return t_s
+
+
 def time_boot_ms(t_s: float) -> int:
     """Vehicle time (s since boot) -> MAVLink time_boot_ms (uint32 ms, 49.7 days of range)."""
     ms = int(round(time_usec(t_s) / 1000.0))
@@ -172,9 +183,9 @@ def decode_imu(msg) -> ImuSample:
     if name == "HIGHRES_IMU":
         a = _finite_all(name, ("xacc", "yacc", "zacc"), (msg.xacc, msg.yacc, msg.zacc))
         w = _finite_all(name, ("xgyro", "ygyro", "zgyro"), (msg.xgyro, msg.ygyro, msg.zgyro))
-        return ImuSample(msg.time_usec / 1e6, a, w)
+        return ImuSample(_vehicle_time(name, msg.time_usec / 1e6), a, w)
     if name in ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU"):
-        t = msg.time_usec / 1e6 if name == "RAW_IMU" else msg.time_boot_ms / 1e3
+        t = _vehicle_time(name, msg.time_usec / 1e6) if name == "RAW_IMU" else msg.time_boot_ms / 1e3
         a = tuple(c * G0_M_S2 / 1000.0 for c in (msg.xacc, msg.yacc, msg.zacc))
         w = tuple(c / 1000.0 for c in (msg.xgyro, msg.ygyro, msg.zgyro))
         return ImuSample(t, a, w)
@@ -250,7 +261,7 @@ def decode_joint_angles(msg, n_units: int) -> tuple[float, tuple, tuple]:
         raise CodecError(f"ACTUATOR_OUTPUT_STATUS.active = {int(msg.active):#x} lacks joints of {k} units "
                          f"(expected bits {need:#x})")
     v = _finite_all(name, [f"actuator[{i}]" for i in range(2 * k)], tuple(msg.actuator)[:2 * k])
-    return msg.time_usec / 1e6, v[:k], v[k:]
+    return _vehicle_time(name, msg.time_usec / 1e6), v[:k], v[k:]
 
 
 def decode(msg):
