@@ -55,7 +55,7 @@ from scipy.stats import chi2
 
 from . import model
 from .jit import MODEL_SOURCE, key_caches_on
-from .model import P_SURF, derivative, euler_to_quat, quat_to_euler, rk4_step, specific_force
+from .model import P_CURRENT, P_G, P_SURF, derivative, euler_to_quat, quat_to_euler, rk4_step, specific_force
 from .sensors import AttitudeSample, ImuSample
 from .vehicle import Vehicle
 
@@ -79,6 +79,7 @@ class EstimatorHealth:
     nis_average: tuple = (0.0, 0.0, 0.0, 0.0)  # windowed NIS / dim (expected ~1)
     diverged: bool = False
     diverged_reason: str = ""
+    depth_resets: int = 0  # depth re-anchored on the sensor after a sustained gated run (a jump)
 
     @property
     def rejected_total(self) -> int:
@@ -91,6 +92,7 @@ class EstimatorHealth:
             out[f"rejn_{s[:5]}"] = float(self.rejected_nonfinite[i])
             out[f"rejg_{s[:5]}"] = float(self.rejected_gated[i])
         out["est_div"] = 1.0 if self.diverged else 0.0
+        out["depth_rst"] = float(self.depth_resets)
         return out
 
 
@@ -139,7 +141,8 @@ class EstimatorTuning:
     init_depth_sigma_m: float = 1.0
     init_disturbance_sigma_m_s2: float = 0.2
     gate_probability: float = 0.9999  # chi-square gate P(accept | consistent filter)
-    max_consecutive_rejections: int = 50  # gated rejections in a row of one stream -> diverged
+    max_consecutive_rejections: int = 50  # gated rejections in a row of one stream -> diverged (not depth)
+    depth_reset_after_s: float = 1.0  # depth gated this long without a pass -> re-anchor on the sensor
     nis_window: int = 100  # samples in the NIS moving average
     nis_limit: float = 4.0  # windowed NIS / dim of accepted samples above this -> diverged (expected 1)
     max_sigma_attitude_rad: float = 0.8  # roll/pitch std above this -> diverged
@@ -208,10 +211,13 @@ def _linearise(xr, full, u, p, tau_d):
     f1 = np.empty(n)
     s1 = np.empty(3)
     xp = xr.copy()
+    # with no water current nothing in the body-frame model, the Euler rates or z' depends on yaw
+    # (gravity and buoyancy act through R^T e3, a function of roll and pitch): that column is 0
+    still = p[P_CURRENT] == 0.0 and p[P_CURRENT + 1] == 0.0 and p[P_CURRENT + 2] == 0.0
     for j in range(n):
-        if 6 <= j < 9 or j >= 13:
+        if 6 <= j < 9 or j >= 13 or (j == 2 and still):
             # analytic columns: the gyro bias enters neither model nor accelerometer; d enters
-            # v' and f_spec with unit gain and decays at 1 / tau_d
+            # v' and f_spec with unit gain and decays at 1 / tau_d; yaw in still water, above
             for i in range(n):
                 A[i, j] = 0.0
             for i in range(3):
@@ -235,7 +241,7 @@ def _linearise(xr, full, u, p, tau_d):
 
 @njit(cache=True)
 def _propagate(xr, full, u, p, dt, tau_d):
-    """Mean by RK4 of the full model; F = I + A dt + (A dt)^2 / 2 at the prior mean.
+    """Mean by RK4 of the full model (yaw in [-pi, pi)); F = I + A dt + (A dt)^2 / 2 at the prior mean.
 
     Also returns H_acc, the accelerometer Jacobian at the prior mean, for the next IMU update.
     """
@@ -243,7 +249,7 @@ def _propagate(xr, full, u, p, dt, tau_d):
     nxt = rk4_step(full, u, p, dt)
     xn = xr.copy()
     roll, pitch, yaw = quat_to_euler(nxt[3:7])
-    xn[0], xn[1], xn[2] = roll, pitch, yaw
+    xn[0], xn[1], xn[2] = roll, pitch, (yaw + math.pi) % (2.0 * math.pi) - math.pi
     for i in range(3):
         xn[3 + i] = nxt[10 + i]
         xn[9 + i] = nxt[7 + i]
@@ -260,7 +266,7 @@ def _propagate(xr, full, u, p, dt, tau_d):
 
 
 def _vector3(v):
-    """A finite 3-vector as an array, or None (NaN, inf, wrong length or not numbers)."""
+    """A finite 3-vector as a tuple of floats, or None (NaN, inf, wrong length or not numbers)."""
     try:
         if len(v) != 3:
             return None
@@ -269,7 +275,7 @@ def _vector3(v):
         return None
     if not (math.isfinite(x0) and math.isfinite(x1) and math.isfinite(x2)):
         return None
-    return np.array((x0, x1, x2))
+    return (x0, x1, x2)
 
 
 def _wrap(a: float) -> float:
@@ -277,11 +283,16 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def _attitude_residual(z, hx):
-    """z - h(x) with the yaw difference wrapped to [-pi, pi) (used as filterpy's `residual`)."""
-    y = np.subtract(z, hx)
-    y[2] = _wrap(y[2])
-    return y
+# Measurement slots of one instant, STREAMS order: gyro rows 0:3, accelerometer 3:6, depth 6:7,
+# attitude 7:10 (roll, pitch, yaw; the yaw row's innovation wraps)
+_SLOT = np.array([0, 3, 6, 7, 10])
+_YAW_ROW = 9
+N_ROWS = 10
+
+
+def _given(_x, value):
+    """filterpy's HJacobian / Hx callback for a value computed beforehand (passed in `args`)."""
+    return value
 
 
 @njit(cache=True)
@@ -314,6 +325,62 @@ def _specific_force_at(xr, full, u, p):
 
 
 @njit(cache=True)
+def _accel_rows(xr, P, full, u, p, a, H_acc, r_accel, z, hx, H, r):
+    """Fill the accelerometer slot: z = a, h(x) = f_spec(x, u), H = H_acc (linearised at the
+    prior), r = sigma^2 + (g (P_roll + P_pitch) / 2)^2: the second-order term of gravity's
+    projection, g (1 - cos d) ~ g d^2 / 2 for an attitude error d, large while the attitude is
+    uncertain, so a big initial error is not mistaken for an outlier by the gate (second-order
+    EKF, Gelb 1974 sec. 6.1)."""
+    f = _specific_force_at(xr, full, u, p)
+    lin = 0.5 * p[P_G] * (P[0, 0] + P[1, 1])
+    for i in range(3):
+        z[3 + i] = a[i]
+        hx[3 + i] = f[i]
+        r[3 + i] = r_accel + lin * lin
+        for j in range(xr.shape[0]):
+            H[3 + i, j] = H_acc[i, j]
+
+
+@njit(cache=True)
+def _gate_slots(P, H, r, z, hx, present, gates):
+    """Gate each present slot b on its own marginal innovation covariance S_b = H_b P H_b^T + R_b:
+    d2_b = y_b^T S_b^-1 y_b <= gates[b] (chi-square), y = z - h(x) with the yaw row wrapped.
+
+    R is diagonal (independent sensor axes), so the accepted slots stay separable and are fused
+    in one update. Returns the accepted rows ready for it, (H, z, h(x), R), the measured yaw
+    taken on the branch nearest its prediction (z = h + wrap(z - h)), and d2 and acceptance per slot.
+    """
+    nb = present.shape[0]
+    y = z - hx
+    y[_YAW_ROW] = (y[_YAW_ROW] + math.pi) % (2.0 * math.pi) - math.pi
+    d2 = np.full(nb, np.nan)
+    ok = np.zeros(nb, dtype=np.bool_)
+    rows = np.empty(z.shape[0], dtype=np.int64)
+    m = 0
+    for b in range(nb):
+        if not present[b]:
+            continue
+        lo, hi = _SLOT[b], _SLOT[b + 1]
+        d2[b] = _mahalanobis2(P, H[lo:hi], np.diag(r[lo:hi]), y[lo:hi])
+        if math.isfinite(d2[b]) and d2[b] <= gates[b]:
+            ok[b] = True
+            for i in range(lo, hi):
+                rows[m] = i
+                m += 1
+    Hs = np.empty((m, H.shape[1]))
+    zs = np.empty(m)
+    hxs = np.empty(m)
+    Rs = np.zeros((m, m))
+    for i in range(m):
+        k = rows[i]
+        Hs[i] = H[k]
+        hxs[i] = hx[k]
+        zs[i] = hx[k] + y[k] if k == _YAW_ROW else z[k]
+        Rs[i, i] = r[k]
+    return Hs, zs, hxs, Rs, d2, ok
+
+
+@njit(cache=True)
 def _covariance_predict(F, P, Q):
     """P = F P F^T + Q (filterpy EKF.predict, compiled)."""
     return F @ P @ F.T + Q
@@ -333,37 +400,22 @@ def _joseph_update(x, P, H, R, y):
 
 
 @njit(cache=True)
-def _gated_fuse(x, P, H, R, y, bounds, gates, yaw_row):
-    """Gate each block of rows [bounds[i], bounds[i+1]) by d^2 = y^T S^-1 y on its own marginal S,
-    then one Joseph-form update with the accepted rows (a block-diagonal R keeps them separable).
-    yaw_row >= 0 wraps that innovation row to [-pi, pi). Returns (x, P, d2 per block, accepted)."""
-    nb = bounds.shape[0] - 1
-    if yaw_row >= 0:
-        y[yaw_row] = (y[yaw_row] + math.pi) % (2.0 * math.pi) - math.pi
-    d2 = np.empty(nb)
-    ok = np.zeros(nb, dtype=np.bool_)
-    rows = np.empty(y.shape[0], dtype=np.int64)
-    m = 0
-    for b in range(nb):
-        lo, hi = bounds[b], bounds[b + 1]
-        d2[b] = _mahalanobis2(P, H[lo:hi], R[lo:hi, lo:hi], y[lo:hi])
-        if math.isfinite(d2[b]) and d2[b] <= gates[b]:
-            ok[b] = True
-            for r in range(lo, hi):
-                rows[m] = r
-                m += 1
-    if m == 0:
+def _gated_fuse(x, P, H, r, z, hx, present, gates):
+    """The compiled backend's whole update: `_gate_slots`, then `_joseph_update` with the
+    accepted rows (the filterpy backend hands the same rows to ExtendedKalmanFilter.update).
+    Returns (x, P, d2 per slot, accepted per slot)."""
+    Hs, zs, hxs, Rs, d2, ok = _gate_slots(P, H, r, z, hx, present, gates)
+    if zs.shape[0] == 0:
         return x, P, d2, ok
-    Hs = np.empty((m, x.shape[0]))
-    Rs = np.empty((m, m))
-    ys = np.empty(m)
-    for i in range(m):
-        Hs[i] = H[rows[i]]
-        ys[i] = y[rows[i]]
-        for j in range(m):
-            Rs[i, j] = R[rows[i], rows[j]]
-    xn, Pn = _joseph_update(x, P, Hs, Rs, ys)
+    xn, Pn = _joseph_update(x, P, Hs, Rs, zs - hxs)
     return xn, Pn, d2, ok
+
+
+@njit(cache=True)
+def _settle(xr, full, surface):
+    """After an update: yaw back to [-pi, pi), the full model state's rigid-body part from xr."""
+    xr[2] = (xr[2] + math.pi) % (2.0 * math.pi) - math.pi
+    _embed(xr, full, surface)
 
 
 @njit(cache=True)
@@ -384,17 +436,6 @@ def _covariance_check(x, P, limits):
     return 0
 
 
-def _block_diag(blocks) -> np.ndarray:
-    n = sum(b.shape[0] for b in blocks)
-    out = np.zeros((n, n))
-    i = 0
-    for b in blocks:
-        m = b.shape[0]
-        out[i:i + m, i:i + m] = b
-        i += m
-    return out
-
-
 class _ModelAidedEKF(ExtendedKalmanFilter):
     """filterpy's EKF with the nonlinear mean propagation of the vehicle model.
 
@@ -409,7 +450,15 @@ class _ModelAidedEKF(ExtendedKalmanFilter):
 # ------------------------------------------------------------------------------------------------
 
 class Estimator:
-    """Model-aided EKF, ready to use from a vehicle: `predict`, `update_*`, read `estimate`."""
+    """Model-aided EKF, ready to use from a vehicle: `predict`, `update_*`, read `estimate`.
+
+    Samples of one instant (the `update_*` calls between two `predict`s) are gated each on its
+    own and fused together in ONE Kalman update, when the filter next moves on or is read
+    (`predict`, `estimate`, `health`, `diverged`): R is diagonal, so with the gate passed this is
+    the same posterior as fusing them one after another (sequential processing of independent
+    measurements, Bar-Shalom et al. 2001 sec. 7.2), for one filterpy update per tick instead of
+    one per sample.
+    """
 
     def __init__(
         self,
@@ -421,8 +470,8 @@ class Estimator:
         backend: str = "filterpy",
     ):
         """backend: "filterpy" runs predict and update through filterpy's ExtendedKalmanFilter;
-        "compiled" runs the same equations (same Joseph form) in numba, cross-checked against
-        filterpy in the tests, for a loop that needs the ~100 us it saves per step."""
+        "compiled" runs the same equations (same gate, same Joseph form) in numba, cross-checked
+        against filterpy in the tests."""
         if backend not in ("filterpy", "compiled"):
             raise ValueError(f"Estimator: backend must be 'filterpy' or 'compiled', got {backend!r}")
         self.backend = backend
@@ -433,11 +482,12 @@ class Estimator:
         self.layout = model.StateLayout(vehicle.n_units)
         s, e = vehicle.sensors, vehicle.environment
         t = self.tuning
-        # Measurement noise (spec 5), floored so S stays invertible when a file says 0
-        self._R_gyro = np.eye(3) * max(s.gyro_noise, 1e-4) ** 2
-        self._R_accel = np.eye(3) * (max(s.accel_noise, 1e-3) ** 2 + t.accel_model_sigma_m_s2 ** 2)
-        self._R_depth = np.eye(1) * max(s.pressure_noise / (e.rho * e.g), 1e-3) ** 2
-        self._R_att = np.eye(3) * max(s.attitude_noise, 1e-4) ** 2
+        # Measurement noise variances (spec 5), floored so S stays invertible when a file says 0;
+        # every sensor axis is independent, so R is diagonal and kept as its diagonal
+        self._r_gyro = np.full(3, max(s.gyro_noise, 1e-4) ** 2)
+        self._r_accel = np.full(3, max(s.accel_noise, 1e-3) ** 2 + t.accel_model_sigma_m_s2 ** 2)
+        self._r_depth = np.full(1, max(s.pressure_noise / (e.rho * e.g), 1e-3) ** 2)
+        self._r_att = np.full(3, max(s.attitude_noise, 1e-4) ** 2)
         # Continuous process noise densities, X_* order
         self._q = np.array(
             [t.q_attitude_rad_sqrt_s] * 3 + [t.q_rates_rad_s2_sqrt_hz] * 3
@@ -455,13 +505,15 @@ class Estimator:
         self._H_gyro[:, X_BIAS:X_BIAS + 3] = np.eye(3)
         self._H_depth = np.zeros((1, N_X))
         self._H_depth[0, X_DEPTH] = 1.0  # h = depth
-        self._H_imu = np.zeros((6, N_X))
-        self._H_imu[0:3] = self._H_gyro
-        self._R_imu = _block_diag([self._R_gyro, self._R_accel])
-        self._imu_bounds = np.array([0, 3, 6])
-        self._imu_gates = np.array([self._gate[3], self._gate[3]])
         self._H_att = np.zeros((3, N_X))
         self._H_att[:, X_EULER:X_EULER + 3] = np.eye(3)  # h = [roll, pitch, yaw]
+        # The instant's measurement slots (_SLOT), fused together by _fuse_pending: H of the
+        # gyro, depth and attitude slots is constant, the accelerometer's is written per sample
+        self._zb, self._hxb = np.zeros(N_ROWS), np.zeros(N_ROWS)
+        self._rb = np.concatenate([self._r_gyro, self._r_accel, self._r_depth, self._r_att])
+        self._Hb = np.vstack([self._H_gyro, np.zeros((3, N_X)), self._H_depth, self._H_att])
+        self._slot_gates = np.array([self._gate[3], self._gate[3], self._gate[1], self._gate[3]])
+        self._present = np.zeros(len(STREAMS), dtype=bool)
         self._init = (float(depth_m), tuple(map(float, euler_rad)), tuple(map(float, gyro_bias_rad_s)))
         self.reset()
 
@@ -489,6 +541,7 @@ class Estimator:
         _embed(x, self._full, self.params[P_SURF])
         self._command = np.zeros(3 * self.vehicle.n_units)
         self._H_acc = _linearise(x, self._full, self._command, self.params, self._tau_d)[1]
+        self._Q_dt = math.nan  # dt of the cached Q = diag(q^2) dt
         self.time_s = 0.0
         self._accepted = [0, 0, 0, 0]
         self._rej_nonfinite = [0, 0, 0, 0]
@@ -497,6 +550,13 @@ class Estimator:
         self._nis = [0.0, 0.0, 0.0, 0.0]
         self._nis_n = [0, 0, 0, 0]
         self._diverged = ""
+        self._depth_rejected_since = None  # time_s of the first gated depth sample of the current run
+        self._depth_resets = 0
+        self._present[:] = False  # slots holding a sample of this instant
+        self._pending = False
+        self._version = 0  # bumped by every change: the estimate / health objects are built once per change
+        self._health_cache = (-1, None)
+        self._estimate_cache = (-1, math.nan, None)
 
     # -- prediction --------------------------------------------------------------------------
     def predict(self, dt: float, command) -> None:
@@ -516,15 +576,17 @@ class Estimator:
                 f"Estimator.predict: command must be {self._command.shape[0]} finite values "
                 f"[n_cmd, alpha_cmd, beta_cmd per unit], got {command!r}"
             )
+        self._fuse_pending()  # the samples of the instant being left
+        self._version += 1
         if self._diverged and not np.all(np.isfinite(self._ekf.x)):
             self.time_s += dt  # nothing sane to propagate; wait for reset()
             return
         self._command = u.copy()
         ekf = self._ekf
-        xn, full, F, self._H_acc = _propagate(ekf.x, self._full, u, self.params, dt, self._tau_d)
-        xn[X_EULER + 2] = _wrap(xn[X_EULER + 2])
-        self._full = full
-        ekf.Q = self._Qc * dt  # Q = diag(q^2) dt
+        xn, self._full, F, self._H_acc = _propagate(ekf.x, self._full, u, self.params, dt, self._tau_d)
+        if dt != self._Q_dt:
+            self._Q_dt, self._Q = dt, self._Qc * dt  # Q = diag(q^2) dt
+        ekf.Q = self._Q
         if self._compiled:
             ekf.x, ekf.P = xn, _covariance_predict(F, ekf.P, ekf.Q)
         else:
@@ -538,64 +600,34 @@ class Estimator:
         self.time_s += dt
         self._check_divergence()
 
-    # -- updates -----------------------------------------------------------------------------
+    # -- updates (buffered for the instant, fused by _fuse_pending) --------------------------
     def update_imu(self, sample: ImuSample) -> None:
-        """Fuse one IMU sample: gyro z = w + b_g, accelerometer z = f_spec(x, u) (spec 5).
+        """An IMU sample: gyro z = w + b_g, accelerometer z = f_spec(x, u) (spec 5).
 
-        Each half is checked and gated on its own, then the accepted halves go through one
-        filterpy update; the accelerometer Jacobian is the one linearised at the prior (predict).
+        Each half is checked for NaN/inf and gated on its own; the accelerometer Jacobian is the
+        one linearised at the prior (predict).
         """
+        self._version += 1
         g = _vector3(sample.gyro_frd_rad_s)
         a = _vector3(sample.accel_frd_m_s2)
-        if self._compiled and g is not None and a is not None:
-            self._update_imu_compiled(g, a)
-            return
-        parts = []
         if g is None:
             self._rej_nonfinite[_GYRO] += 1
         else:
-            parts.append((_GYRO, g, self._H_gyro, self._H_gyro @ self._ekf.x, self._R_gyro))
+            self._claim(_GYRO)
+            x, z, hx = self._ekf.x, self._zb, self._hxb
+            for i in range(3):
+                z[i] = g[i]
+                hx[i] = x[X_RATES + i] + x[X_BIAS + i]  # h = w + b_g
         if a is None:
             self._rej_nonfinite[_ACCEL] += 1
         else:
-            hx = _specific_force_at(self._ekf.x, self._full, self._command, self.params)
-            # Second-order term of gravity's projection, g (1 - cos d) ~ g d^2 / 2 for an
-            # attitude error d: large while the attitude is uncertain, so a big initial error is
-            # not mistaken for an outlier by the gate (second-order EKF, Gelb 1974 sec. 6.1).
-            P = self._ekf.P
-            lin = 0.5 * self.vehicle.environment.g * (P[0, 0] + P[1, 1])
-            parts.append((_ACCEL, a, self._H_acc, hx, self._R_accel + np.eye(3) * lin * lin))
-        self._update(parts)
-
-    def _update_imu_compiled(self, g, a) -> None:
-        """update_imu with both halves usable, compiled backend: one call gates and fuses."""
-        ekf = self._ekf
-        x, P = ekf.x, ekf.P
-        H = self._H_imu
-        H[3:6] = self._H_acc
-        y = np.empty(6)
-        y[0:3] = g - (x[X_RATES:X_RATES + 3] + x[X_BIAS:X_BIAS + 3])  # y_g = z - (w + b_g)
-        y[3:6] = a - _specific_force_at(x, self._full, self._command, self.params)  # y_a = z - f_spec(x, u)
-        lin = 0.5 * self.vehicle.environment.g * (P[0, 0] + P[1, 1])  # second-order term, see update_imu
-        R = self._R_imu.copy()
-        for i in range(3, 6):
-            R[i, i] += lin * lin
-        ekf.x, ekf.P, d2, ok = _gated_fuse(x, P, H, R, y, self._imu_bounds, self._imu_gates, -1)
-        for i, k in ((0, _GYRO), (1, _ACCEL)):
-            if ok[i]:
-                self._accepted[k] += 1
-                self._consecutive[k] = 0
-                self._nis_push(k, d2[i] / 3.0)
-            else:
-                self._rej_gated[k] += 1
-                self._consecutive[k] += 1
-        if ok[0] or ok[1]:
-            _embed(ekf.x, self._full, self.params[P_SURF])
-            ekf.x[X_EULER + 2] = _wrap(ekf.x[X_EULER + 2])
-        self._check_divergence()
+            self._claim(_ACCEL)
+            _accel_rows(self._ekf.x, self._ekf.P, self._full, self._command, self.params, a, self._H_acc,
+                        self._r_accel[0], self._zb, self._hxb, self._Hb, self._rb)
 
     def update_depth(self, depth_m: float) -> None:
-        """Fuse a depth (m, from `sensors.depth_from_pressure`); z = max(depth, 0) as the sensor reads."""
+        """A depth (m, from `sensors.depth_from_pressure`); z = max(depth, 0) as the sensor reads."""
+        self._version += 1
         try:
             z = float(depth_m)
         except (TypeError, ValueError):
@@ -603,92 +635,101 @@ class Estimator:
         if not math.isfinite(z):
             self._rej_nonfinite[_DEPTH] += 1
             return
-        d = self._ekf.x[X_DEPTH]
+        d = float(self._ekf.x[X_DEPTH])
         if d <= 0.0 and z <= 0.0:
             # the sensor reads max(depth, 0): at or above the surface it says nothing more
             self._accepted[_DEPTH] += 1
+            self._depth_rejected_since = None
             return
         # otherwise h = depth, H = e_depth: a reading > 0 says the vehicle is that deep whatever
         # the estimate; a reading of 0 with an estimate below the surface pulls it up to 0
-        self._update([(_DEPTH, np.array([max(z, 0.0)]), self._H_depth, np.array([d]), self._R_depth)])
+        self._claim(_DEPTH)
+        row = _SLOT[_DEPTH]
+        self._zb[row] = max(z, 0.0)
+        self._hxb[row] = d
 
     def update_attitude(self, sample: AttitudeSample) -> None:
-        """Fuse an ATTITUDE (roll, pitch, yaw); yaw innovation wrapped to [-pi, pi)."""
+        """An ATTITUDE (roll, pitch, yaw); h = [roll, pitch, yaw], yaw innovation wrapped to [-pi, pi)."""
+        self._version += 1
         try:
-            z = np.array([sample.roll_rad, sample.pitch_rad, sample.yaw_rad], dtype=float)
+            z = (float(sample.roll_rad), float(sample.pitch_rad), float(sample.yaw_rad))
         except (TypeError, ValueError):
-            z = np.full(3, np.nan)
-        if not np.all(np.isfinite(z)):
+            z = (math.nan,) * 3
+        if not (math.isfinite(z[0]) and math.isfinite(z[1]) and math.isfinite(z[2])):
             self._rej_nonfinite[_ATT] += 1
             return
-        hx = self._ekf.x[X_EULER:X_EULER + 3].copy()
-        self._update([(_ATT, z, self._H_att, hx, self._R_att)])
+        self._claim(_ATT)
+        x, lo = self._ekf.x, _SLOT[_ATT]
+        for i in range(3):
+            self._zb[lo + i] = z[i]
+            self._hxb[lo + i] = x[X_EULER + i]
 
-    def _update(self, parts) -> None:
-        """Gate each part by d^2 = y^T S^-1 y (S = H P H^T + R), then one filterpy EKF update."""
-        ekf = self._ekf
-        if self._compiled and parts:
-            self._update_compiled(parts)
+    def _claim(self, k: int) -> None:
+        """Slot k for a new sample; a second sample of a stream in one instant fuses the first."""
+        if self._present[k]:
+            self._fuse_pending()
+        self._present[k] = True
+        self._pending = True
+
+    def _fuse_pending(self) -> None:
+        """Gate each pending sample by d^2 = y^T S^-1 y (S = H P H^T + R on its own rows), then ONE
+        update with the accepted rows: filterpy's ExtendedKalmanFilter.update (or its compiled
+        twin), K = P H^T S^-1; x += K y; P = (I - K H) P (I - K H)^T + K R K^T (Joseph)."""
+        if not self._pending:
             return
-        keep = []
-        for k, z, H, hx, R in parts:
-            y = z - hx  # innovation y = z - h(x)
-            if k == _ATT:
-                y[2] = _wrap(y[2])
-            d2 = _mahalanobis2(ekf.P, H, R, y)
-            m = len(z)
-            if not math.isfinite(d2) or d2 > self._gate[m]:
-                self._rej_gated[k] += 1
-                self._consecutive[k] += 1  # (the NIS average sees accepted samples only)
-            else:
-                keep.append((k, z, H, hx, R))
+        present = self._present.copy()
+        self._present[:] = False
+        self._pending = False
+        self._version += 1
+        ekf = self._ekf
+        if self._compiled:
+            ekf.x, ekf.P, d2, ok = _gated_fuse(ekf.x, ekf.P, self._Hb, self._rb, self._zb, self._hxb,
+                                               present, self._slot_gates)
+        else:
+            H, z, hx, R, d2, ok = _gate_slots(ekf.P, self._Hb, self._rb, self._zb, self._hxb,
+                                              present, self._slot_gates)
+            if z.shape[0]:
+                # K = P H^T S^-1; x += K y; P = (I - K H) P (I - K H)^T + K R K^T (Joseph)
+                ekf.update(z, _given, _given, R=R, args=(H,), hx_args=(hx,))
+        reanchor = None
+        for k in range(len(STREAMS)):
+            if not present[k]:
+                continue
+            if ok[k]:
                 self._accepted[k] += 1
-                self._consecutive[k] = 0
-                self._nis_push(k, d2 / m)
-        if keep:
-            if len(keep) == 1:
-                _, z, H, hx, R = keep[0]
-            else:
-                z = np.concatenate([p[1] for p in keep])
-                H = np.vstack([p[2] for p in keep])
-                hx = np.concatenate([p[3] for p in keep])
-                R = _block_diag([p[4] for p in keep])
-            att = any(p[0] == _ATT for p in keep)
-            ekf.update(
-                z, lambda _x: H, lambda _x: hx, R=R,
-                residual=_attitude_residual if att else np.subtract,
-            )  # K = P H^T S^-1; x += K y; P = (I - K H) P (I - K H)^T + K R K^T (Joseph)
-            ekf.x[X_EULER + 2] = _wrap(ekf.x[X_EULER + 2])
-            _embed(ekf.x, self._full, self.params[P_SURF])
+                self._consecutive[k] = 0  # (the NIS average sees accepted samples only)
+                self._nis_push(k, d2[k] / (_SLOT[k + 1] - _SLOT[k]))
+                if k == _DEPTH:
+                    self._depth_rejected_since = None
+                continue
+            self._rej_gated[k] += 1
+            self._consecutive[k] += 1
+            if k == _DEPTH:
+                if self._depth_rejected_since is None:
+                    self._depth_rejected_since = self.time_s
+                elif self.time_s - self._depth_rejected_since >= self.tuning.depth_reset_after_s - 1e-9:
+                    reanchor = float(self._zb[_SLOT[_DEPTH]])
+        if reanchor is not None:
+            self._reset_depth(reanchor)
+        if reanchor is not None or ok.any():
+            _settle(ekf.x, self._full, self.params[P_SURF])
         self._check_divergence()
 
-    def _update_compiled(self, parts) -> None:
-        """The same gating and Joseph update as `_update`, in one compiled call (`_gated_fuse`)."""
+    def _reset_depth(self, depth_m: float) -> None:
+        """Re-anchor depth on the sensor after `depth_reset_after_s` of gated depth samples (a
+        sensor that jumped and stays): depth := z, its covariance row and column zeroed, variance
+        := R_depth, as ArduPilot's NavEKF2/3 reset the height to the baro when the height
+        innovations have failed for longer than their retry time (FuseVelPosNED -> ResetHeight)."""
         ekf = self._ekf
-        if len(parts) == 1:
-            k, z, H, hx, R = parts[0]
-            y = z - hx
-            bounds = np.array([0, len(z)])
-        else:
-            y = np.concatenate([z - hx for _, z, _, hx, _ in parts])
-            H = np.vstack([p[2] for p in parts])
-            R = _block_diag([p[4] for p in parts])
-            bounds = np.cumsum([0] + [len(p[1]) for p in parts])
-        yaw_row = 2 if parts[0][0] == _ATT else -1
-        gates = np.array([self._gate[len(p[1])] for p in parts])
-        ekf.x, ekf.P, d2, ok = _gated_fuse(ekf.x, ekf.P, H, R, y, bounds, gates, yaw_row)
-        for i, (k, z, *_rest) in enumerate(parts):
-            if ok[i]:
-                self._accepted[k] += 1
-                self._consecutive[k] = 0
-                self._nis_push(k, d2[i] / len(z))
-            else:
-                self._rej_gated[k] += 1
-                self._consecutive[k] += 1
-        if ok.any():
-            ekf.x[X_EULER + 2] = _wrap(ekf.x[X_EULER + 2])
-            _embed(ekf.x, self._full, self.params[P_SURF])
-        self._check_divergence()
+        x, P = ekf.x.copy(), ekf.P.copy()
+        x[X_DEPTH] = depth_m
+        P[X_DEPTH, :] = 0.0
+        P[:, X_DEPTH] = 0.0
+        P[X_DEPTH, X_DEPTH] = self._r_depth[0]
+        ekf.x, ekf.P = x, P
+        self._depth_resets += 1
+        self._depth_rejected_since = None
+        self._consecutive[_DEPTH] = 0
 
     def _nis_push(self, k: int, value: float) -> None:
         """Windowed mean of NIS/dim: exponential average with the window's time constant."""
@@ -712,7 +753,8 @@ class Estimator:
             }[code]
         else:
             for k, s in enumerate(STREAMS):
-                if self._consecutive[k] >= t.max_consecutive_rejections:
+                # depth is not in the run test: a sustained depth disagreement re-anchors (_reset_depth)
+                if k != _DEPTH and self._consecutive[k] >= t.max_consecutive_rejections:
                     self._diverged = f"{s}: {self._consecutive[k]} consecutive gated rejections"
                     break
                 if self._nis_n[k] >= t.nis_window // 2 and self._nis[k] > t.nis_limit:
@@ -722,45 +764,46 @@ class Estimator:
     # -- output ------------------------------------------------------------------------------
     @property
     def diverged(self) -> bool:
+        self._fuse_pending()
         return bool(self._diverged)
 
     @property
     def health(self) -> EstimatorHealth:
-        return EstimatorHealth(
-            accepted=tuple(self._accepted),
-            rejected_nonfinite=tuple(self._rej_nonfinite),
-            rejected_gated=tuple(self._rej_gated),
-            nis_average=tuple(self._nis),
-            diverged=bool(self._diverged),
-            diverged_reason=self._diverged,
-        )
+        self._fuse_pending()
+        version, h = self._health_cache
+        if version != self._version:
+            h = EstimatorHealth(
+                accepted=tuple(self._accepted),
+                rejected_nonfinite=tuple(self._rej_nonfinite),
+                rejected_gated=tuple(self._rej_gated),
+                nis_average=tuple(self._nis),
+                diverged=bool(self._diverged),
+                diverged_reason=self._diverged,
+                depth_resets=self._depth_resets,
+            )
+            self._health_cache = (self._version, h)
+        return h
 
     @property
     def estimate(self) -> EstimatedState:
-        x = self._ekf.x
-        return _make_state(self.time_s, x, self._ekf.P.diagonal(), self.health)
+        health = self.health  # fuses what is pending
+        version, time_s, s = self._estimate_cache
+        if version != self._version or time_s != self.time_s:
+            s = _make_state(self.time_s, self._ekf.x, self._ekf.P.diagonal(), health)
+            self._estimate_cache = (self._version, self.time_s, s)
+        return s
 
 
 def _make_state(time_s: float, x, cov_diag, health: EstimatorHealth) -> EstimatedState:
-    xs = np.asarray(x, dtype=float).tolist()
-    phi, theta, psi = xs[0], xs[1], xs[2]
+    phi, theta, psi, p, q, r, bgx, bgy, bgz, u, v, w, depth, dx, dy, dz = np.asarray(x, dtype=float).tolist()
     # q = q_z(psi) q_y(theta) q_x(phi) (Fossen 2011 eq. 2.83)
-    q = tuple(euler_to_quat(phi, theta, psi).tolist())
-    u, v, w = xs[9], xs[10], xs[11]
+    quat = tuple(euler_to_quat(phi, theta, psi).tolist())
     # z' = R[2, :] v = -s(theta) u + c(theta) s(phi) v + c(theta) c(phi) w (Fossen 2011 eq. 2.18)
-    zdot = -math.sin(theta) * u + math.cos(theta) * math.sin(phi) * v + math.cos(theta) * math.cos(phi) * w
+    cth = math.cos(theta)
+    zdot = -math.sin(theta) * u + cth * math.sin(phi) * v + cth * math.cos(phi) * w
     return EstimatedState(
-        time_s=float(time_s),
-        quat_wxyz=q,
-        euler_rad=(phi, theta, _wrap(psi)),
-        rates_rad_s=tuple(xs[3:6]),
-        gyro_bias_rad_s=tuple(xs[6:9]),
-        velocity_body_m_s=tuple(xs[9:12]),
-        depth_m=xs[12],
-        depth_rate_m_s=zdot,
-        accel_disturbance_m_s2=tuple(xs[13:16]),
-        covariance_diag=tuple(np.asarray(cov_diag, dtype=float).tolist()),
-        health=health,
+        float(time_s), quat, (phi, theta, _wrap(psi)), (p, q, r), (bgx, bgy, bgz), (u, v, w), depth, zdot,
+        (dx, dy, dz), tuple(np.asarray(cov_diag, dtype=float).tolist()), health,
     )
 
 
