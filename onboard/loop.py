@@ -493,14 +493,15 @@ class OnboardLoop:
             self.stats.ignored_imu += 1  # a better IMU stream is present
             return
         s = codec.decode_imu(m)
+        mon = self.monitor
+        if mon is not None:
+            mon.sample_age(self.clock.now(), s.time_s)  # late ones too: their age is the point
         if rank == self._imu_rank and s.time_s <= self._last_imu_stamp:
             self.stats.ignored_imu += 1  # duplicate or out of order
             return
         self._imu_rank = rank
         self._last_imu_stamp = s.time_s
-        mon = self.monitor
         if mon is not None:
-            mon.sample_age(self.clock.now(), s.time_s)
             if not mon.imu(s.time_s, s.accel_frd_m_s2, s.gyro_frd_rad_s):
                 self._observe(s.time_s)  # time moves on, but a frozen sample is not a fresh one
                 self.stats.frozen_imu += 1

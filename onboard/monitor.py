@@ -4,7 +4,8 @@ No IO and no clock: `FaultMonitor` is a state object the loop feeds with observa
 the loop's own time (vehicle time in lock-step, `VehicleClock`; wall time otherwise) and asks
 once per control tick what is wrong. Flags are the shared vocabulary of issue #7 (`Fault`); each
 raise or clear is an event (t_s, flag, text), text "FAULT <FLAG> <detail>" / "CLEARED <FLAG> ...".
-Units and joints are numbered from 0, as in the command vector.
+In the texts units are numbered 1..k, as in the vehicle file's [[unit]] list, the ESC telemetry and
+hil.faults; in arrays (`UnitHealth`, `efficiency`) they sit at index 0..k-1, as in the command.
 
 What is detected, and from what:
 - LINK_LOSS / LINK_DUPLICATE / LINK_REORDER: MAVLink sequence numbers per (system, component)
@@ -279,6 +280,9 @@ class FaultMonitor:
         self._n_cmd = np.zeros(k)
         self._j_model = np.zeros(2 * k)  # alpha 0..k-1, beta k..2k-1
         self._j_cmd = np.zeros(2 * k)
+        # the models at the last ticks (t, n, n_cmd, joints, joint_cmd): feedback that arrives late
+        # (a delayed link) is compared with the model at its own time, not with the model now
+        self._past: deque = deque(maxlen=64)
         # jets
         self._sxy = [0.0] * k
         self._sxx = [0.0] * k
@@ -460,27 +464,44 @@ class FaultMonitor:
         self._j_model = self._joints_at(dt)
         self._t_model = t
 
-    def _joints_at(self, dt: float) -> np.ndarray:
+    def _joints_at(self, dt: float, j0=None, cmd=None) -> np.ndarray:
+        """Joint angles dt after a state j0 under command cmd (default: the model's now)."""
         c = self.config
         lim = c.angle_limit_rad
+        j0 = self._j_model if j0 is None else j0
+        cmd = self._j_cmd if cmd is None else cmd
         if c.servo_time_constant_s <= 0 or dt <= 0:
-            return np.clip(self._j_cmd, -lim, lim) if dt > 0 else self._j_model
-        return servo_motion(self._j_model, self._j_cmd, dt, c.servo_time_constant_s, c.servo_rate_limit_rad_s,
-                            lim)[0]
+            return np.clip(cmd, -lim, lim) if dt > 0 else j0
+        return servo_motion(j0, cmd, dt, c.servo_time_constant_s, c.servo_rate_limit_rad_s, lim)[0]
+
+    def _snapshot(self, t: float):
+        """The model state in force at time t: (t0, n0, n_cmd, j0, j_cmd), or None if too old."""
+        if t >= self._t_model:
+            return self._t_model, self._n_model, self._n_cmd, self._j_model, self._j_cmd
+        for snap in reversed(self._past):
+            if snap[0] <= t:
+                return snap
+        return None
 
     def rpm(self, t_s: float, first_unit: int, rpm) -> None:
         """ESC telemetry received at loop time t_s: rpm of units first_unit, first_unit + 1, ..."""
         c = self.config
         if self._t_model is None or not math.isfinite(t_s):
             return
-        dt = max(t_s - self._t_model, 0.0)
+        # ESC telemetry carries no time: it is taken as measured the link's mean delay ago
+        t_meas = t_s - self.delay_s
+        snap = self._snapshot(t_meas)
+        if snap is None:
+            return
+        t0, n0, n_cmd = snap[0], snap[1], snap[2]
+        dt = max(t_meas - t0, 0.0)
         decay = math.exp(-dt / c.motor_time_constant_s) if c.motor_time_constant_s > 0 else 0.0
         floor = c.jet_min_speed * c.n_max_rev_s
         for j, r in enumerate(rpm):
             i = first_unit + j
             if not 0 <= i < self.k:
                 continue
-            n_hat = float(self._n_cmd[i] + (self._n_model[i] - self._n_cmd[i]) * decay)
+            n_hat = float(n_cmd[i] + (n0[i] - n_cmd[i]) * decay)
             if n_hat < floor:
                 continue
             last = self._t_rpm[i]
@@ -495,13 +516,14 @@ class FaultMonitor:
 
     def joints(self, t_s: float, alpha_rad, beta_rad) -> None:
         """Measured joint angles (ACTUATOR_OUTPUT_STATUS) stamped t_s."""
-        if self._t_model is None or not math.isfinite(t_s) or t_s < self._t_model - 1e-9:
-            return  # before the first command, or older than the model: no reference to compare with
+        if self._t_model is None or not math.isfinite(t_s):
+            return  # before the first command: no reference to compare with
+        snap = self._snapshot(t_s)
         meas = np.concatenate([np.asarray(alpha_rad, float), np.asarray(beta_rad, float)])
-        if meas.shape != self._j_model.shape:
-            return
+        if snap is None or meas.shape != self._j_model.shape:
+            return  # older than the models kept
         self._j_meas = meas
-        self._j_resid = np.abs(meas - self._joints_at(t_s - self._t_model))
+        self._j_resid = np.abs(meas - self._joints_at(t_s - snap[0], snap[3], snap[4]))
         self._t_joint = t_s
         self._joint_new = True
 
@@ -519,11 +541,11 @@ class FaultMonitor:
             state = self._jet_state[i]
             if cand != state and t - self._jet_since[i] >= c.jet_persist_s - 1e-9:
                 if state != "ok":
-                    self._clear(("jet", i), t, f"unit {i}")
+                    self._clear(("jet", i), t, f"unit {i + 1}")
                 self._jet_state[i] = cand
                 if cand != "ok":
                     flag = Fault.JET_DEAD if cand == "dead" else Fault.JET_WEAK
-                    self._raise(("jet", i), flag, t, f"unit {i} e={e:.2f}")
+                    self._raise(("jet", i), flag, t, f"unit {i + 1} e={e:.2f}")
                 changed = True
             elif state == "weak" and abs(e - self.health.efficiency[i]) > c.jet_republish:
                 changed = True  # a weak jet's efficiency estimate moved: republish it
@@ -540,7 +562,7 @@ class FaultMonitor:
             else:
                 cond = fresh and self._j_resid[j] > c.joint_tolerance_rad
             if self._deb_joint[j].update(cond, t, c.joint_persist_s, c.joint_persist_s):
-                what = f"{'azimuth' if j < self.k else 'elevation'} {j % self.k}"
+                what = f"unit {j % self.k + 1} {'azimuth' if j < self.k else 'elevation'}"
                 if cond:
                     self._stuck[j] = float(self._j_meas[j])
                     self._raise(("joint", j), Fault.JOINT_STUCK, t, f"{what} at {self._stuck[j]:.2f} rad")
@@ -568,6 +590,8 @@ class FaultMonitor:
         c = self.config
         t = float(t_s)
         if self._t_model is not None:
+            if command is not None:  # the segment [t_model, t) under the command in force ends here
+                self._past.append((self._t_model, self._n_model, self._n_cmd, self._j_model, self._j_cmd))
             self._advance_models(t)
         if self._rpm_new:
             self._rpm_new = False
@@ -591,8 +615,7 @@ class FaultMonitor:
             k = self.k
             self._n_cmd = np.clip(cmd[:k], 0.0, c.n_max_rev_s)
             self._j_cmd = cmd[k:3 * k].copy()
-            if self._t_model is None:
-                self._t_model = t
+            self._t_model = t
         return self.faults
 
     def _check_depth(self, t: float, health) -> None:
