@@ -7,6 +7,11 @@ MAVLink mode plays the autopilot's sensor side for a controller (`jetloop onboar
 HEARTBEAT, HIGHRES_IMU, SCALED_PRESSURE2, ATTITUDE, ESC telemetry and a SYSTEM_TIME frame marker
 out; HIL_ACTUATOR_CONTROLS (or, with `--actuators pwm`, SERVO_OUTPUT_RAW) in. `--lockstep`
 advances the plant only when the controller has answered each frame.
+
+Fault injection (hil.faults, issue #7): --loss, --delay, --jitter, --duplicate, --reorder on the
+link; --dead-jet, --weak-jet, --stuck-joint on the actuators; --imu-freeze, --imu-nan, --depth-jump
+on the sensors. E.g. `jetloop hil --loss 0.2 --dead-jet 2@5 --out hil.tlog`: each fault's start is
+marked in the recording (STATUSTEXT "INJECT ..." from component 250, never sent).
 """
 
 from __future__ import annotations
@@ -34,6 +39,9 @@ def configure(parser) -> None:
                         help="inject the demo mission's ground setpoints (arm, dive, yaw, forward, surface)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s of vehicle time")
     parser.add_argument("--wait", type=float, default=300.0, metavar="S", help="how long to wait for a controller")
+    from hil.faults import add_fault_arguments
+
+    add_fault_arguments(parser)
 
 
 def run(args) -> int:
@@ -45,7 +53,17 @@ def run(args) -> int:
     except VehicleFileError as exc:
         print(f"jetloop hil: {exc}", file=sys.stderr)
         return 2
+    from hil.faults import FaultPlanError, plan_from_args
+
+    try:
+        faults = plan_from_args(args, vehicle.n_units)
+    except FaultPlanError as exc:
+        print(f"jetloop hil: {exc}", file=sys.stderr)
+        return 2
     if args.json_sitl:
+        if not faults.empty:
+            print("jetloop hil: fault injection works on the MAVLink endpoint, not with --json-sitl", file=sys.stderr)
+            return 2
         return _json_sitl(args, vehicle)
     from hil.endpoint import EndpointError, HilEndpoint
     from hil.plant import Plant
@@ -73,9 +91,15 @@ def run(args) -> int:
         return 2
     plant = Plant(vehicle, seed=args.seed, depth_m=args.depth)
     ep = HilEndpoint(vehicle, link, plant, control_period_s=1.0 / rate, lockstep=not args.realtime,
-                     actuators=args.actuators, setpoints=setpoints, tlog=tlog, seed=args.seed, history=False)
+                     actuators=args.actuators, setpoints=setpoints, tlog=tlog, seed=args.seed, history=False,
+                     faults=faults)
     print(f"jetloop hil: {vehicle.name} on {conn}, {'real time' if args.realtime else 'lock-step'}, "
           f"{rate:g} Hz; waiting for a controller", flush=True)
+    if not faults.empty:
+        from hil.faults import injection_events
+
+        print("jetloop hil: faults: " + "; ".join(f"{t:g} s {text[len('INJECT '):]}"
+                                                 for t, text in injection_events(faults)), flush=True)
     code = 0
     t0 = time.monotonic()
     try:
@@ -95,7 +119,7 @@ def run(args) -> int:
         wall = time.monotonic() - t0
         s = ep.stats
         print(f"jetloop hil: {ep.time_s:.2f} s of vehicle time in {wall:.1f} s, {s.commands_applied} commands, "
-              f"{s.resends} resends, link {link.stats()}" + (f", recorded {args.out}" if args.out else ""), flush=True)
+              f"{s.resends} resends, link {ep.link.stats()}" + (f", recorded {args.out}" if args.out else ""), flush=True)
         link.close()
     return code
 

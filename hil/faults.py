@@ -455,3 +455,183 @@ def read_injections(path) -> list:
         text = bytes(a["text"]).split(b"\0", 1)[0].decode("ascii", "replace")
         out.append(((int(t) - FIXED_EPOCH_US) / 1e6, text))
     return out
+
+
+# ------------------------------------------------------------------------------------------------
+# What the onboard monitor should say about each injected fault
+
+
+# onboard.monitor.Fault values (the shared vocabulary of issue #7; a test checks they agree)
+FLAG = {"LINK_LOSS": 1, "LINK_DELAY": 2, "LINK_DUPLICATE": 4, "LINK_REORDER": 8, "JET_DEAD": 16,
+        "JET_WEAK": 32, "JOINT_STUCK": 64, "IMU_FROZEN": 128, "IMU_NAN": 256, "DEPTH_JUMP": 512,
+        "IMU_LOST": 1024}
+
+
+def expected_detections(plan: FaultPlan) -> list:
+    """(t0_s, flag name, what was injected) for every fault the onboard side should report."""
+    out = []
+    if plan.loss:
+        out.append((plan.loss_window_s[0], "LINK_LOSS", f"loss {plan.loss:g}"))
+    if plan.delay_s or plan.jitter_s:
+        out.append((plan.delay_window_s[0], "LINK_DELAY", f"delay {plan.delay_s:g} s jitter {plan.jitter_s:g} s"))
+    if plan.duplicate:
+        out.append((plan.duplicate_window_s[0], "LINK_DUPLICATE", f"duplicate {plan.duplicate:g}"))
+    if plan.reorder:
+        out.append((plan.reorder_window_s[0], "LINK_REORDER", f"reorder {plan.reorder:g}"))
+    for j in plan.jets:
+        out.append((j.t0_s, "JET_DEAD" if j.efficiency == 0 else "JET_WEAK",
+                    f"jet {j.unit} " + ("dead" if j.efficiency == 0 else f"weak {j.efficiency:g}")))
+    for s in plan.stuck_joints:
+        out.append((s.t0_s, "JOINT_STUCK", f"joint {s.unit} {s.joint} stuck"))
+    out += [(w[0], "IMU_FROZEN", f"imu frozen {w[0]:g}-{w[1]:g} s") for w in plan.imu_freeze_s]
+    out += [(w[0], "IMU_NAN", f"imu nan {w[0]:g}-{w[1]:g} s") for w in plan.imu_nan_s]
+    out += [(w[0], "IMU_LOST", f"imu silent {w[0]:g}-{w[1]:g} s") for w in plan.imu_dropouts_s]
+    out += [(d.t0_s, "DEPTH_JUMP", f"depth jump {d.offset_m:+g} m") for d in plan.depth_jumps]
+    return sorted(out, key=lambda e: e[0])
+
+
+def detections(plan: FaultPlan, fault_events) -> list:
+    """For each injected fault: dict(injected, flag, t0_s, detected_s or None, latency_s or None),
+    from the onboard loop's fault_events [(t_s, flag, text), ...] ("FAULT ..." raises only)."""
+    raised = [(float(t), int(flag)) for t, flag, text in fault_events if str(text).startswith("FAULT")]
+    out = []
+    for t0, name, what in expected_detections(plan):
+        hit = next((t for t, flag in raised if flag & FLAG[name] and t + 1e-9 >= t0), None)
+        out.append({"injected": what, "flag": name, "t0_s": t0, "detected_s": hit,
+                    "latency_s": None if hit is None else round(hit - t0, 3)})
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Command-line flags (`jetloop hil`, `jetloop demo`)
+
+
+FLAG_HELP = {
+    "loss": "FRACTION[@T0[:T1]]: lose this fraction (0..0.3) of the packets, both ways",
+    "delay": "SECONDS[@T0[:T1]]: delay every packet, both ways",
+    "jitter": "SECONDS: add U(0, SECONDS) to the delay (in --delay's window)",
+    "duplicate": "FRACTION[@T0[:T1]]: deliver this fraction of the packets twice",
+    "reorder": "FRACTION[@T0[:T1]]: deliver this fraction of the packets after the next one",
+    "dead-jet": "UNIT@T0: jet UNIT (1..k) stops at T0 (repeatable)",
+    "weak-jet": "UNIT:EFFICIENCY@T0: jet UNIT reaches only EFFICIENCY (0..1) of the commanded speed (repeatable)",
+    "stuck-joint": "UNIT:azimuth|elevation@T0: that joint stays where it is at T0 (repeatable)",
+    "imu-freeze": "T0:T1: the IMU repeats its last values with fresh time stamps (repeatable)",
+    "imu-nan": "T0:T1: the IMU sends NaN (repeatable)",
+    "depth-jump": "OFFSET_M@T0[:T1]: the depth sensor reads OFFSET_M deeper (repeatable; a negative one as --depth-jump=-0.1@T0)",
+}
+
+
+def add_fault_arguments(parser) -> None:
+    """The fault flags; `plan_from_args` turns them into a FaultPlan. Times: s of vehicle time."""
+    g = parser.add_argument_group("fault injection (issue #7; times in s of vehicle time)")
+    for name, text in FLAG_HELP.items():
+        repeat = name in ("dead-jet", "weak-jet", "stuck-joint", "imu-freeze", "imu-nan", "depth-jump")
+        meta, _, what = text.partition(": ")
+        g.add_argument(f"--{name}", default=[] if repeat else None, action="append" if repeat else "store",
+                       metavar=meta, help=what)
+
+
+def _number(flag: str, text: str, expect: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise FaultPlanError(f"--{flag} {text!r}: expected {expect}") from None
+    if not math.isfinite(v):
+        raise FaultPlanError(f"--{flag} {text!r}: expected {expect} (a finite number)")
+    return v
+
+
+def _at(flag: str, value: str, expect: str, window: bool):
+    """'X@T0[:T1]' -> ('X', (t0, t1)); without '@' the whole run (only where a window is allowed)."""
+    head, sep, when = value.partition("@")
+    if not sep:
+        if window:
+            return head, ALWAYS
+        raise FaultPlanError(f"--{flag} {value!r}: expected {expect} (the onset time @T0 is missing)")
+    t0s, sep1, t1s = when.partition(":")
+    if sep1 and not window:
+        raise FaultPlanError(f"--{flag} {value!r}: expected {expect} (this fault has no end time)")
+    t0 = _number(flag, t0s, expect)
+    t1 = _number(flag, t1s, expect) if sep1 else math.inf
+    if not 0.0 <= t0 < t1:
+        raise FaultPlanError(f"--{flag} {value!r}: expected {expect} with 0 <= T0 < T1")
+    return head, (t0, t1)
+
+
+def _unit(flag: str, text: str, value: str, expect: str, n_units: int) -> int:
+    if not text.strip().isdigit() or not 1 <= int(text) <= n_units:
+        raise FaultPlanError(f"--{flag} {value!r}: expected {expect}, UNIT a jet number 1..{n_units}")
+    return int(text)
+
+
+def plan_from_args(args, n_units: int) -> FaultPlan:
+    """The FaultPlan of the parsed fault flags; FaultPlanError naming the flag and what it expects."""
+    kw: dict = {}
+    for name, field_, top in (("loss", "loss", MAX_LOSS), ("duplicate", "duplicate", 1.0), ("reorder", "reorder", 1.0)):
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        expect = f"FRACTION[@T0[:T1]], FRACTION 0..{top:g}"
+        head, w = _at(name, value, expect, window=True)
+        v = _number(name, head, expect)
+        if not 0.0 <= v <= top:
+            raise FaultPlanError(f"--{name} {value!r}: expected {expect}")
+        kw[field_], kw[f"{field_}_window_s"] = v, w
+    if getattr(args, "delay", None) is not None:
+        expect = "SECONDS[@T0[:T1]], SECONDS >= 0"
+        head, w = _at("delay", args.delay, expect, window=True)
+        kw["delay_s"], kw["delay_window_s"] = _number("delay", head, expect), w
+        if kw["delay_s"] < 0:
+            raise FaultPlanError(f"--delay {args.delay!r}: expected {expect}")
+    if getattr(args, "jitter", None) is not None:
+        kw["jitter_s"] = _number("jitter", args.jitter, "SECONDS >= 0 (no window: it uses --delay's)")
+        if kw["jitter_s"] < 0:
+            raise FaultPlanError(f"--jitter {args.jitter!r}: expected SECONDS >= 0")
+    jets, stuck, depth = [], [], []
+    for value in getattr(args, "dead_jet", None) or []:
+        expect = "UNIT@T0"
+        head, (t0, _) = _at("dead-jet", value, expect, window=False)
+        jets.append(JetFault(_unit("dead-jet", head, value, expect, n_units), 0.0, t0))
+    for value in getattr(args, "weak_jet", None) or []:
+        expect = "UNIT:EFFICIENCY@T0, EFFICIENCY in (0, 1)"
+        head, (t0, _) = _at("weak-jet", value, expect, window=False)
+        unit, sep, eff = head.partition(":")
+        if not sep:
+            raise FaultPlanError(f"--weak-jet {value!r}: expected {expect}")
+        e = _number("weak-jet", eff, expect)
+        if not 0.0 < e < 1.0:
+            raise FaultPlanError(f"--weak-jet {value!r}: expected {expect} (use --dead-jet for 0)")
+        jets.append(JetFault(_unit("weak-jet", unit, value, expect, n_units), e, t0))
+    for value in getattr(args, "stuck_joint", None) or []:
+        expect = "UNIT:azimuth@T0 or UNIT:elevation@T0"
+        head, (t0, _) = _at("stuck-joint", value, expect, window=False)
+        unit, sep, joint = head.partition(":")
+        if not sep or joint not in JOINTS:
+            raise FaultPlanError(f"--stuck-joint {value!r}: expected {expect}")
+        stuck.append(StuckJoint(_unit("stuck-joint", unit, value, expect, n_units), joint, t0))
+    for flag, field_ in (("imu-freeze", "imu_freeze_s"), ("imu-nan", "imu_nan_s")):
+        windows = []
+        for value in getattr(args, flag.replace("-", "_"), None) or []:
+            expect = "T0:T1 with 0 <= T0 < T1"
+            t0s, sep, t1s = value.partition(":")
+            if not sep:
+                raise FaultPlanError(f"--{flag} {value!r}: expected {expect}")
+            t0, t1 = _number(flag, t0s, expect), _number(flag, t1s, expect)
+            if not 0.0 <= t0 < t1:
+                raise FaultPlanError(f"--{flag} {value!r}: expected {expect}")
+            windows.append((t0, t1))
+        if windows:
+            kw[field_] = tuple(windows)
+    for value in getattr(args, "depth_jump", None) or []:
+        expect = "OFFSET_M@T0[:T1]"
+        head, (t0, t1) = _at("depth-jump", value, expect, window=True)
+        if "@" not in value:
+            raise FaultPlanError(f"--depth-jump {value!r}: expected {expect} (the onset time @T0 is missing)")
+        depth.append(DepthJump(t0, _number("depth-jump", head, expect), t1))
+    if jets:
+        kw["jets"] = tuple(jets)
+    if stuck:
+        kw["stuck_joints"] = tuple(stuck)
+    if depth:
+        kw["depth_jumps"] = tuple(depth)
+    return FaultPlan(**kw)

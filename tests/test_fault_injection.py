@@ -544,3 +544,58 @@ def test_lock_step_with_link_faults_costs_no_wall_time_and_records_what_crossed(
     again = tmp_path / "again.tlog"
     scripted_flight(plan, 1.0, lambda t: np.zeros(3 * K), tlog_path=again)
     assert again.read_bytes() == path.read_bytes()  # deterministic in lock-step, faults and all
+
+
+# --- `jetloop hil` fault flags -------------------------------------------------------------------------
+
+from ground.cli import main as jetloop  # noqa: E402
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--loss", "0.4"], "--loss '0.4': expected FRACTION[@T0[:T1]], FRACTION 0..0.3"),
+    (["--loss", "0.1@5:2"], "--loss '0.1@5:2': expected FRACTION[@T0[:T1]], FRACTION 0..0.3 with 0 <= T0 < T1"),
+    (["--duplicate", "lots"], "--duplicate 'lots': expected FRACTION[@T0[:T1]], FRACTION 0..1"),
+    (["--delay", "nan"], "--delay 'nan': expected SECONDS[@T0[:T1]], SECONDS >= 0 (a finite number)"),
+    (["--jitter", "-0.01"], "--jitter '-0.01': expected SECONDS >= 0"),
+    (["--dead-jet", "5@1"], "--dead-jet '5@1': expected UNIT@T0, UNIT a jet number 1..4"),
+    (["--dead-jet", "2"], "--dead-jet '2': expected UNIT@T0 (the onset time @T0 is missing)"),
+    (["--dead-jet", "2@1:3"], "--dead-jet '2@1:3': expected UNIT@T0 (this fault has no end time)"),
+    (["--weak-jet", "2@1"], "--weak-jet '2@1': expected UNIT:EFFICIENCY@T0, EFFICIENCY in (0, 1)"),
+    (["--weak-jet", "2:0@1"], "(use --dead-jet for 0)"),
+    (["--stuck-joint", "1:roll@2"], "--stuck-joint '1:roll@2': expected UNIT:azimuth@T0 or UNIT:elevation@T0"),
+    (["--imu-freeze", "4"], "--imu-freeze '4': expected T0:T1 with 0 <= T0 < T1"),
+    (["--imu-nan", "4:3"], "--imu-nan '4:3': expected T0:T1 with 0 <= T0 < T1"),
+    (["--depth-jump", "0.3"], "--depth-jump '0.3': expected OFFSET_M@T0[:T1] (the onset time @T0 is missing)"),
+    (["--json-sitl", "--loss", "0.1"], "fault injection works on the MAVLink endpoint, not with --json-sitl"),
+])
+def test_malformed_fault_flags_exit_2_naming_the_flag(flags, message, capsys):
+    assert jetloop(["hil", *flags, "--wait", "0.1", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jetloop hil: ") and message in err and "Traceback" not in err
+
+
+def test_every_fault_flag_reaches_the_plan():
+    import argparse
+
+    from hil.faults import add_fault_arguments, plan_from_args
+
+    p = argparse.ArgumentParser()
+    add_fault_arguments(p)
+    args = p.parse_args(
+        "--loss 0.2@1:9 --delay 0.02 --jitter 0.01 --duplicate 0.05 --reorder 0.05@2 --dead-jet 2@5.0 "
+        "--weak-jet 3:0.5@5.5 --stuck-joint 1:azimuth@6 --imu-freeze 3:4 --imu-nan 7:7.5 "
+        "--depth-jump 0.3@6 --depth-jump=-0.1@8:9".split())  # = before a leading minus
+    assert plan_from_args(args, K) == FaultPlan(
+        loss=0.2, loss_window_s=(1.0, 9.0), delay_s=0.02, jitter_s=0.01, duplicate=0.05,
+        reorder=0.05, reorder_window_s=(2.0, math.inf),
+        jets=(JetFault(2, 0.0, 5.0), JetFault(3, 0.5, 5.5)), stuck_joints=(StuckJoint(1, "azimuth", 6.0),),
+        imu_freeze_s=((3.0, 4.0),), imu_nan_s=((7.0, 7.5),),
+        depth_jumps=(DepthJump(6.0, 0.3), DepthJump(8.0, -0.1, 9.0)))
+    assert plan_from_args(p.parse_args([]), K).empty
+
+
+def test_the_flag_values_are_the_onboard_monitors():
+    from hil.faults import FLAG
+    from onboard.monitor import Fault
+
+    assert FLAG == {f.name: f.value for f in Fault}
