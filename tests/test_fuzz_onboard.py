@@ -1,0 +1,187 @@
+"""Fuzzing the onboard loop's MAVLink input (issue 7 part 2) through a real UDP onboard.link.Link.
+
+Every message type OnboardLoop.handle reads is sent with hostile field values (NaN, inf, 3.4e38,
+integer extremes, any frame, any type_mask, any target system) from the autopilot's system and from
+the ground's, between well-formed sensor samples, while the loop polls in lock-step. Properties:
+- nothing raises out of poll(); no example takes more than its deadline (no hang);
+- the command sent stays finite and inside the vehicle's limits (0 <= n <= n_max, |angle| <= limit);
+- a sensor sample with a non-finite value in a field the codec reads is counted
+  (stats.rejected_inputs, or ignored_imu for a lower-ranked IMU), and never reaches the estimator;
+- the loop goes on: well-formed samples after the hostile ones still make it step.
+"""
+
+from __future__ import annotations
+
+import math
+from datetime import timedelta
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from onboard import mavlink_codec as codec
+from onboard.link import Link
+from onboard.loop import IMU_RANK, OnboardLoop, VehicleClock, arm_command
+from onboard.sensors import AttitudeSample, ImuSample, PressureSample
+from test_fuzz_messages import hostile, hostile_any, pack
+
+SENSORS = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU", "SCALED_PRESSURE2",
+           "SCALED_PRESSURE", "ATTITUDE", "SYSTEM_TIME", "ESC_TELEMETRY_1_TO_4", "ACTUATOR_OUTPUT_STATUS")
+GROUND = ("SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL", "COMMAND_LONG", "HEARTBEAT")
+READ_FLOATS = {  # fields the codec decodes: a non-finite one must be refused
+    "HIGHRES_IMU": ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro"),
+    "SCALED_PRESSURE2": ("press_abs",),  # (SCALED_PRESSURE is passed over unread once SCALED_PRESSURE2 came)
+    "ATTITUDE": ("roll", "pitch", "yaw", "rollspeed", "pitchspeed", "yawspeed"),
+}
+FUZZ = settings(max_examples=15, deadline=timedelta(seconds=10),
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+def _good(t: float) -> list:
+    """A well-formed frame of sensor messages at vehicle time t, then its SYSTEM_TIME marker."""
+    return [codec.encode_imu(ImuSample(t, (0.0, 0.0, -9.80665), (0.0, 0.0, 0.0))),
+            codec.encode_pressure(PressureSample(t, 101325.0 + 1025 * 9.80665 * 0.5, 20.0)),
+            codec.encode_attitude(AttitudeSample(t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)),
+            mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t))]
+
+
+class Rig:
+    """An onboard loop on a real udpin link, an autopilot (system 1) and a ground (255) sending to it."""
+
+    def __init__(self, vehicle):
+        self.link = Link("udpin:127.0.0.1:0")
+        self.loop = OnboardLoop(vehicle, self.link, VehicleClock(block_s=0.005))
+        port = self.link.local_address[1]
+        self.autopilot = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+        self.ground = Link(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+
+    def send(self, msgs, sender=None) -> None:
+        with (sender or self.autopilot).batch():
+            for m in msgs:
+                (sender or self.autopilot).send(m)
+
+    def pump(self, polls: int = 60) -> None:
+        """poll() until the link is quiet (bounded: a hang shows as the example's deadline)."""
+        for _ in range(polls):
+            before = self.link.bytes_in
+            self.loop.poll()
+            if self.link.bytes_in == before and not self.loop._tick_due() and not self.link._ready:
+                break
+
+    def close(self) -> None:
+        for lk in (self.link, self.autopilot, self.ground):
+            lk.close()
+
+
+@pytest.fixture(scope="module")
+def rigs(vehicle):
+    """rigs() -> a fresh Rig (the previous one is closed: one example, one loop)."""
+    made = []
+
+    def make():
+        while made:
+            made.pop().close()
+        made.append(Rig(vehicle))
+        return made[-1]
+    yield make
+    while made:
+        made.pop().close()
+
+
+def _check_command(loop, vehicle) -> None:
+    c = np.asarray(loop.command, dtype=float)
+    k = vehicle.n_units
+    assert np.all(np.isfinite(c))
+    assert np.all(c[:k] >= -1e-9) and np.all(c[:k] <= vehicle.thruster.n_max + 1e-9)
+    assert np.all(np.abs(c[k:]) <= vehicle.servo.angle_limit + 1e-9)
+
+
+def _armed_rig(rigs):
+    rig = rigs()
+    rig.send(_good(0.01))
+    rig.pump()
+    rig.send([arm_command(True)], rig.ground)
+    for i in range(2, 8):
+        rig.send(_good(0.01 * i))
+        rig.pump()
+    return rig
+
+
+def _fly(rig, msgs, from_ground: bool, t0: float = 0.08) -> None:
+    rig.send(msgs, rig.ground if from_ground else rig.autopilot)
+    rig.pump()
+    for i in range(1, 6):  # well-formed samples after the hostile ones
+        rig.send(_good(t0 + 0.01 * i))
+        rig.pump()
+
+
+@FUZZ
+@given(msgs=st.lists(hostile_any(SENSORS), min_size=1, max_size=6))
+@example(msgs=[mavlink.MAVLink_highres_imu_message(2 ** 64 - 1, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)])
+@example(msgs=[mavlink.MAVLink_raw_imu_message(2 ** 64 - 1, 0, 0, -1000, 0, 0, 0, 0, 0, 0, 0, 0)])
+@example(msgs=[mavlink.MAVLink_system_time_message(0, 2 ** 32 - 1)])
+def test_hostile_sensor_messages_never_stop_the_loop(rigs, vehicle, msgs):
+    """Regression examples: a time_usec near 2^64 hung the loop (prediction across 1e13 s) and
+    then broke its output packing; a SYSTEM_TIME at the end of time_boot_ms's range."""
+    rig = _armed_rig(rigs)
+    steps = rig.loop.stats.steps
+    _fly(rig, msgs, from_ground=False)
+    _check_command(rig.loop, vehicle)
+    assert rig.loop.stats.steps > steps or rig.loop.clock.now() > 0.13  # it stepped, or time ran ahead
+
+
+@FUZZ
+@given(msgs=st.lists(hostile_any(GROUND), min_size=1, max_size=6), ground=st.booleans())
+def test_hostile_ground_messages_never_stop_the_loop(rigs, vehicle, msgs, ground):
+    """Setpoints with any frame, type_mask, NaN or 3.4e38, commands with any id and parameters, for
+    this vehicle or another, from the ground's system or the autopilot's."""
+    rig = _armed_rig(rigs)
+    steps = rig.loop.stats.steps
+    _fly(rig, msgs, from_ground=ground)
+    _check_command(rig.loop, vehicle)
+    assert rig.loop.stats.steps > steps
+
+
+@FUZZ
+@given(data=st.data(), name=st.sampled_from(sorted(READ_FLOATS)))
+def test_a_non_finite_reading_is_counted_and_never_fused(rigs, data, name):
+    msg = data.draw(hostile(name))
+    field = data.draw(st.sampled_from(READ_FLOATS[name]))
+    setattr(msg, field, data.draw(st.sampled_from([math.nan, math.inf, -math.inf])))
+    rig = _armed_rig(rigs)
+    loop = rig.loop
+    before = loop.stats.rejected_inputs + loop.stats.ignored_imu
+    rejected_by_estimator = loop.estimator.health.rejected_total
+    rig.send([msg])
+    rig.pump()
+    counted = loop.stats.rejected_inputs + loop.stats.ignored_imu - before
+    assert counted == 1, (name, field, msg)
+    rig.send(_good(0.09))
+    rig.pump()
+    assert np.all(np.isfinite(loop.estimator.estimate.nu))
+    assert loop.estimator.health.rejected_total == rejected_by_estimator  # refused before the filter
+    assert name not in IMU_RANK or loop._last_imu_stamp <= 0.09 + 1e-9
+
+
+@settings(max_examples=5, deadline=timedelta(seconds=20), suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2 ** 32 - 1))
+def test_garbage_between_frames_is_counted_and_the_loop_flies_on(rigs, vehicle, seed):
+    """Random datagrams between well-formed frames: counted in the link's stats and in the loop's
+    telemetry counter (link_bad = bad + unknown packets), and the loop keeps stepping."""
+    rig = _armed_rig(rigs)
+    rng = np.random.default_rng(seed)
+    steps = rig.loop.stats.steps
+    sock = rig.autopilot._io.sock
+    sent = 0
+    for i in range(8, 20):
+        junk = rng.integers(0, 256, int(rng.integers(1, 1500)), dtype=np.uint8).tobytes()
+        sock.sendto(junk, rig.link.local_address)
+        sent += len(junk)
+        rig.send(_good(0.01 * i))
+        rig.pump()
+    _check_command(rig.loop, vehicle)
+    s = rig.link.stats()
+    assert rig.loop.stats.steps >= steps + 8
+    assert s["garbage_bytes"] >= 0.9 * sent  # a random packet with a good CRC is ~1 in 65536 per marker
