@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.endpoint import EndpointError, Faults, HilEndpoint
+from hil.endpoint import EndpointError, HilEndpoint
+from hil.faults import FaultPlan, detections
 from hil.plant import Plant
 from onboard.link import Link
 from onboard.loop import LoopConfig, OnboardLoop, VehicleClock, arm_command, body_velocity_target, depth_yaw_target
@@ -85,6 +86,12 @@ class Mission:
 DEMO_CONFIG = LoopConfig()
 
 
+def hold_mission(duration_s: float = 20.0, depth_m: float = 0.5) -> Mission:
+    """Arm at 1 s, dive to `depth_m`, hold depth and heading: the scene for a fault scenario."""
+    return Mission(legs=(Leg(1.0, "dive", depth_m=depth_m, yaw_rad=0.0, surge_m_s=0.0, settle_s=5.0),),
+                   duration_s=duration_s)
+
+
 def reference_mission() -> Mission:
     """Dive to 0.5 m, hold, yaw 90 deg, forward 0.3 m/s for 5 s, stop, surface."""
     return Mission(
@@ -137,7 +144,9 @@ def tracking_errors(truth, mission: Mission, surface_m: float = 0.0) -> dict:
 
 
 def _onboard_main(vehicle, link, ground, config, stop, results):
-    """The onboard process: build the loop (compiles on a first run), fly until told to stop."""
+    """The onboard process: build the loop (compiles on a first run), fly until told to stop.
+    Reports the loop's whole stats.summary() (with the fault monitor's faults_seen and
+    fault_events) plus the links' counts."""
     try:
         loop = OnboardLoop(vehicle, link, VehicleClock(), config, ground=ground)
         loop.run(stop=stop.is_set)
@@ -198,7 +207,7 @@ def run_closed_loop(
     seed: int = 0,
     config: LoopConfig = LoopConfig(),
     out_dir: Path | None = None,
-    faults: Faults = Faults(),
+    faults: FaultPlan = FaultPlan(),
     depth_m: float = 0.0,
     processes: bool = True,
     start_timeout_s: float = 300.0,
@@ -296,9 +305,13 @@ def run_closed_loop(
         ep_link.close()
     st = ep.stats
     endpoint = {"periods": st.periods, "commands_applied": st.commands_applied, "resends": st.resends,
-                "stale_replies": st.stale_replies, "bad_commands": st.bad_commands, "link": ep_link.stats()}
-    return ClosedLoopResult(ep.truth, ep.commands, endpoint, got.get("onboard", {}), got.get("recorder", {}),
-                            wall, tlog_path, telemetry_path)
+                "stale_replies": st.stale_replies, "bad_commands": st.bad_commands, "link": ep.link.stats()}
+    onboard = got.get("onboard", {})
+    extra = {}
+    if not faults.empty:  # what was injected, and when the onboard side reported each fault
+        extra["detections"] = detections(faults, onboard.get("fault_events", []))
+    return ClosedLoopResult(ep.truth, ep.commands, endpoint, onboard, got.get("recorder", {}),
+                            wall, tlog_path, telemetry_path, extra)
 
 
 def _drain(results, got: dict, timeout_s: float, want=()) -> None:
@@ -339,6 +352,8 @@ def summarise(result: ClosedLoopResult, mission: Mission, vehicle: Vehicle) -> d
         "failsafe_entries": ob.get("failsafe_entries", -1),
         "control_steps": ob.get("steps", 0),
         "lockstep_periods": result.endpoint["periods"],
+        "faults_seen": ob.get("faults_seen", 0),
+        "detections": result.extra.get("detections", []),
         "mission_s": mission.duration_s,
         "wall_s": result.wall_s,
     }
@@ -363,6 +378,15 @@ def table(summary: dict) -> str:
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)
     return "\n".join(f"  {a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows)
+
+
+def detection_table(rows) -> str:
+    """Injected faults and when the onboard fault monitor reported each (hil.faults.detections)."""
+    lines = [f"  {'injected':<34}  {'at':>6}  {'onboard flag':<14}  detected after"]
+    for r in rows:
+        seen = "NOT DETECTED" if r["detected_s"] is None else f"{r['latency_s']:.2f} s"
+        lines.append(f"  {r['injected']:<34}  {r['t0_s']:>5.1f}s  {r['flag']:<14}  {seen}")
+    return "\n".join(lines)
 
 
 def plot(result: ClosedLoopResult, mission: Mission, vehicle: Vehicle, path: Path) -> None:
@@ -422,6 +446,13 @@ def configure(parser) -> None:
     parser.add_argument("--no-compensation", dest="compensation", action="store_const", const="off",
                         help="the same as --compensation off")
     parser.add_argument("--threads", action="store_true", help="run the parties as threads instead of processes")
+    parser.add_argument("--mission", choices=("demo", "hold"), default="demo",
+                        help="demo: the reference mission (default); hold: dive to 0.5 m and hold (fault scenarios)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="mission length with --mission hold (default 20 s)")
+    from hil.faults import add_fault_arguments
+
+    add_fault_arguments(parser)
 
 
 def run(args) -> int:
@@ -438,14 +469,26 @@ def run(args) -> int:
     except OSError as exc:
         print(f"jetloop demo: cannot create output directory {out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
-    mission = reference_mission()
+    from hil.faults import FaultPlanError, injection_events, plan_from_args
+
+    try:
+        faults = plan_from_args(args, vehicle.n_units)
+    except FaultPlanError as exc:
+        print(f"jetloop demo: {exc}", file=sys.stderr)
+        return 2
+    if args.duration is not None and not (args.mission == "hold" and 2.0 <= args.duration <= 3600.0):
+        print(f"jetloop demo: --duration {args.duration}: expected 2..3600 s, with --mission hold", file=sys.stderr)
+        return 2
+    mission = hold_mission(args.duration or 20.0) if args.mission == "hold" else reference_mission()
     config = replace(DEMO_CONFIG, allocator=args.allocator, compensation=args.compensation == "on")
     say = lambda s: print(s, flush=True)  # noqa: E731
     say(f"jetloop demo: plant + onboard + recorder over 127.0.0.1, lock-step, vehicle {vehicle.name}, seed {args.seed}, "
         f"allocation {config.allocator}, compensation {'on' if config.compensation else 'off'}")
+    if not faults.empty:
+        say("faults: " + "; ".join(f"{t:g} s {text[len('INJECT '):]}" for t, text in injection_events(faults)))
     try:
         result = run_closed_loop(vehicle, mission.setpoints(), mission.duration_s, seed=args.seed, config=config,
-                                 out_dir=out, processes=not args.threads, progress=say)
+                                 out_dir=out, processes=not args.threads, progress=say, faults=faults)
     except EndpointError as exc:
         print(f"jetloop demo: {exc}", file=sys.stderr)
         return 1
@@ -457,6 +500,9 @@ def run(args) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     say("")
     say(table(summary))
+    if summary["detections"]:
+        say("")
+        say(detection_table(summary["detections"]))
     say("")
     say(f"wrote {out / 'mission.tlog'} (plant side: sensors, commands, truth), {out / 'telemetry.tlog'} (ground),")
     say(f"      {out / 'mission.png'}, {out / 'summary.json'}")
