@@ -17,11 +17,14 @@ Three properties are measured, the way an autopilot's own soak tests measure the
   is a packet lost between sender and recorder); the telemetry recorder got every packet the
   onboard loop sent it (telemetry.tlog against the onboard's ground-link count).
 
-Faults (only what the vehicle must survive and recover from): short IMU dropouts (below the
-failsafe's 0.3 s IMU timeout: the estimator coasts), long IMU dropouts (they trip the failsafe;
-the ground recovers explicitly, as an operator would: disarm, re-arm, send the setpoint again,
-all as COMMAND_LONG / SET_POSITION_TARGET_LOCAL_NED messages in vehicle time) and bursts of
-garbage bytes on the sensor link.
+Faults (hil.faults.FaultPlan; only what the vehicle must survive and recover from), drawn per
+mission while it is submerged: short IMU dropouts or NaN IMU windows (below the failsafe's 0.3 s
+IMU timeout: the estimator coasts), long ones (they trip the failsafe; the ground recovers
+explicitly, as an operator would: disarm, re-arm, send the setpoint again, all as COMMAND_LONG /
+SET_POSITION_TARGET_LOCAL_NED messages in vehicle time), a frozen IMU, a depth sensor jump, and
+bursts of garbage bytes on the sensor link; and over the run one window each of link packet
+loss (up to 30 %), delay with jitter, duplicates and reordering (`random_link_faults`).
+A dead or weak jet and a stuck joint last for the rest of a run, so they are not drawn.
 """
 
 from __future__ import annotations
@@ -38,7 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from hil.demo import DEMO_CONFIG, Leg, Mission, run_closed_loop
-from hil.endpoint import EndpointError, Faults
+from hil.endpoint import EndpointError
+from hil.faults import DepthJump, FaultPlan
 from onboard.loop import arm_command, body_velocity_target, depth_yaw_target
 from onboard.vehicle import Vehicle, load_vehicle
 
@@ -139,7 +143,18 @@ def mission_problems(mission: Mission, env: Envelope) -> list:
 
 SHORT_DROPOUT_S = (0.05, 0.2)  # below the failsafe's IMU timeout (0.3 s): the estimator coasts
 LONG_DROPOUT_S = (0.5, 1.5)  # trips the failsafe: recovered by disarm + re-arm
-GARBAGE_BYTES = Faults().garbage_bytes  # per burst (hil.endpoint.Faults has one size for the run)
+FREEZE_SHORT_S = (0.03, 0.07)  # IMU values repeat with fresh stamps: under the monitor's 10 samples
+FREEZE_LONG_S = (0.2, 0.5)  # frozen for 10 samples or more: onboard.monitor raises IMU_FROZEN, the failsafe trips
+DEPTH_JUMP_M = (0.05, 0.15)  # the depth sensor steps by +- this ...
+DEPTH_JUMP_S = (1.0, 3.0)  # ... for this long
+GARBAGE_BYTES = FaultPlan().garbage_bytes  # per burst (FaultPlan has one size for the run)
+KINDS = ("imu_dropout_short", "imu_dropout_long", "imu_nan_short", "imu_nan_long", "imu_freeze_short",
+         "imu_freeze_long", "depth_jump", "garbage")
+# no usable IMU for > 0.3 s, or a frozen one: the failsafe must trip (and the ground recover it)
+TRIPS = ("imu_dropout_long", "imu_nan_long", "imu_freeze_long")
+LENGTHS_S = {"imu_dropout_short": SHORT_DROPOUT_S, "imu_nan_short": SHORT_DROPOUT_S,
+             "imu_dropout_long": LONG_DROPOUT_S, "imu_nan_long": LONG_DROPOUT_S,
+             "imu_freeze_short": FREEZE_SHORT_S, "imu_freeze_long": FREEZE_LONG_S}
 RECOVER_DISARM_S = 0.3  # after the IMU returns, the ground disarms ...
 RECOVER_ARM_S = 0.6  # ... re-arms and sends the setpoint again
 
@@ -148,10 +163,11 @@ RECOVER_ARM_S = 0.6  # ... re-arms and sends the setpoint again
 class Injection:
     """One fault at t_s (vehicle time) in mission `mission` (index), with its parameter."""
 
-    kind: str  # "imu_dropout_short", "imu_dropout_long", "garbage"
+    kind: str  # one of KINDS
     t_s: float
-    length_s: float = 0.0  # dropouts
+    length_s: float = 0.0  # windows (dropout, NaN, freeze, depth jump)
     n_bytes: int = 0  # garbage
+    offset_m: float = 0.0  # depth jump
     mission: int = -1
 
 
@@ -163,6 +179,7 @@ class Schedule:
     missions: tuple
     injections: tuple
     duration_s: float
+    link: dict = field(default_factory=dict)  # FaultPlan link fields (loss, loss_window_s, ...)
 
     def setpoints(self) -> list:
         """(vehicle time, ground message): each mission's own (shifted), a disarm at its end, and the
@@ -172,7 +189,7 @@ class Schedule:
             out += [(t0 + t, msg) for t, msg in m.setpoints()]
             out.append((t0 + m.duration_s - END_S, arm_command(False)))
         for inj in self.injections:
-            if inj.kind == "imu_dropout_long":
+            if inj.kind in TRIPS:
                 t1 = inj.t_s + inj.length_s
                 d = self.missions[inj.mission].demand_at(t1 - self.starts_s[inj.mission])
                 out.append((t1 + RECOVER_DISARM_S, arm_command(False)))
@@ -182,10 +199,15 @@ class Schedule:
                     out.append((t1 + RECOVER_ARM_S, body_velocity_target(d["surge_m_s"], 0.0)))
         return sorted(out, key=lambda p: p[0])  # stable: at one instant, arm goes before its setpoint
 
-    def faults(self) -> Faults:
-        drops = tuple((i.t_s, round(i.t_s + i.length_s, 6)) for i in self.injections if i.kind.startswith("imu_dropout"))
+    def faults(self) -> FaultPlan:
+        win = lambda *kinds: tuple((i.t_s, round(i.t_s + i.length_s, 6)) for i in self.injections  # noqa: E731
+                                   if i.kind in kinds)
+        jumps = tuple(DepthJump(i.t_s, i.offset_m, round(i.t_s + i.length_s, 6))
+                      for i in self.injections if i.kind == "depth_jump")
         garbage = tuple(i.t_s for i in self.injections if i.kind == "garbage")
-        return Faults(imu_dropouts_s=drops, garbage_times_s=garbage, garbage_bytes=GARBAGE_BYTES)
+        return FaultPlan(imu_dropouts_s=win("imu_dropout_short", "imu_dropout_long"),
+                         imu_nan_s=win("imu_nan_short", "imu_nan_long"), imu_freeze_s=win("imu_freeze_short", "imu_freeze_long"),
+                         depth_jumps=jumps, garbage_times_s=garbage, garbage_bytes=GARBAGE_BYTES, **self.link)
 
     def mission_at(self, t_s: float) -> int:
         """Index of the mission flying at t_s (-1 before the first / after the last)."""
@@ -195,7 +217,11 @@ class Schedule:
         return i
 
     def counts(self) -> dict:
-        return dict(sorted(Counter(i.kind for i in self.injections).items()))
+        c = Counter(i.kind for i in self.injections)
+        for name in ("loss", "delay_s", "duplicate", "reorder"):
+            if self.link.get(name):
+                c[f"link_{name.removesuffix('_s')}"] += 1
+        return dict(sorted(c.items()))
 
 
 def random_faults(rng: np.random.Generator, start_s: float, mission: Mission, index: int,
@@ -216,14 +242,32 @@ def random_faults(rng: np.random.Generator, start_s: float, mission: Mission, in
             continue
         last = t
         t_abs = round(start_s + float(t), 2)
-        kind = rng.choice(("imu_dropout_short", "imu_dropout_long", "garbage"))
-        if kind == "imu_dropout_short":
-            out.append(Injection(kind, t_abs, length_s=round(float(rng.uniform(*SHORT_DROPOUT_S)), 3), mission=index))
-        elif kind == "imu_dropout_long":
-            out.append(Injection(kind, t_abs, length_s=round(float(rng.uniform(*LONG_DROPOUT_S)), 3), mission=index))
+        kind = str(rng.choice(KINDS))
+        if kind in LENGTHS_S:
+            out.append(Injection(kind, t_abs, length_s=round(float(rng.uniform(*LENGTHS_S[kind])), 3), mission=index))
+        elif kind == "depth_jump":
+            off = float(rng.uniform(*DEPTH_JUMP_M)) * float(rng.choice((-1.0, 1.0)))
+            out.append(Injection(kind, t_abs, length_s=round(float(rng.uniform(*DEPTH_JUMP_S)), 3),
+                                 offset_m=round(off, 3), mission=index))
         else:
             out.append(Injection(kind, t_abs, n_bytes=GARBAGE_BYTES, mission=index))
     return out
+
+
+def random_link_faults(rng: np.random.Generator, duration_s: float) -> dict:
+    """One window each of packet loss (10-30 %), delay (10-50 ms + up to 20 ms jitter), duplicates
+    and reordering (5-20 %), each a sixth of the run (at most 5 min) at a random place in it."""
+    length = min(300.0, duration_s / 6)
+
+    def window():
+        t0 = round(float(rng.uniform(0.05 * duration_s, 0.95 * duration_s - length)), 2)
+        return (t0, round(t0 + length, 2))
+
+    return {"loss": round(float(rng.uniform(0.1, 0.3)), 3), "loss_window_s": window(),
+            "delay_s": round(float(rng.uniform(0.01, 0.05)), 3), "jitter_s": round(float(rng.uniform(0.0, 0.02)), 3),
+            "delay_window_s": window(),
+            "duplicate": round(float(rng.uniform(0.05, 0.2)), 3), "duplicate_window_s": window(),
+            "reorder": round(float(rng.uniform(0.05, 0.2)), 3), "reorder_window_s": window()}
 
 
 def make_schedule(vehicle: Vehicle, duration_s: float, seed: int, faults: bool = True) -> Schedule:
@@ -241,7 +285,8 @@ def make_schedule(vehicle: Vehicle, duration_s: float, seed: int, faults: bool =
         starts.append(t)
         missions.append(m)
         t = round(t + m.duration_s, 2)
-    return Schedule(tuple(starts), tuple(missions), tuple(injections), float(duration_s))
+    link = random_link_faults(rng, float(duration_s)) if faults else {}
+    return Schedule(tuple(starts), tuple(missions), tuple(injections), float(duration_s), link)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -259,12 +304,39 @@ def growth_kb_per_h(t_s, rss_kb, warmup_s: float) -> float:
     return float(slope_kb_s * 3600.0)
 
 
-def sequence_gaps(seq) -> int:
-    """Packets missing from a MAVLink sequence (8-bit, wrapping): sum of (diff - 1) mod 256."""
+def sequence_gaps(seq) -> dict:
+    """What a MAVLink sequence (8-bit, wrapping) says about the packets of one sender, in the order
+    they were recorded: each step is unwrapped as a signed difference in -128..127 (reordering and
+    duplicates move it back), so `missing` = numbers in the span never seen, `duplicates` =
+    repeats, `reordered` = steps back. A run of 128 or more lost packets in a row would be misread."""
     s = np.asarray(seq, np.int64)
     if s.size < 2:
-        return 0
-    return int(np.sum((np.diff(s) - 1) % 256))
+        return {"missing": 0, "duplicates": 0, "reordered": 0}
+    d = (np.diff(s) + 128) % 256 - 128
+    u = np.concatenate([[0], np.cumsum(d)])
+    n_unique = np.unique(u).size
+    return {"missing": int(u.max() - u.min() + 1 - n_unique), "duplicates": int(s.size - n_unique),
+            "reordered": int(np.sum(d < 0))}
+
+
+def armed_timeline(path: Path, source=(1, 191)):
+    """(vehicle time s, armed) of every HIL_ACTUATOR_CONTROLS from the onboard loop in a plant
+    recording: its mode carries MAV_MODE_FLAG_SAFETY_ARMED while the loop drives the jets."""
+    from ground.recording import decode_message, scan_packets
+
+    buf, off, plen, mid, src, ts = scan_packets(Path(path).read_bytes())
+    a, sel = decode_message(buf, off, plen, mid, "HIL_ACTUATOR_CONTROLS")
+    if a is None:
+        return np.zeros(0), np.zeros(0, bool)
+    mine = src[sel] == source[0] * 256 + source[1]
+    return np.asarray(a["time_usec"][mine], float) / 1e6, (np.asarray(a["mode"][mine]) & 128) != 0
+
+
+def armed_at(timeline, t_s: float) -> bool:
+    """Whether the newest command at or before t_s said armed."""
+    t, armed = timeline
+    i = int(np.searchsorted(t, t_s + 1e-9, side="right")) - 1
+    return bool(i >= 0 and armed[i])
 
 
 def scan_tlog(path: Path) -> dict:
@@ -285,7 +357,7 @@ def scan_tlog(path: Path) -> dict:
             counts[names.get(int(m), f"ID_{int(m)}")] = int(c)
         sent = sel & (mid != getattr(d, f"MAVLINK_MSG_ID_{MOCAP}"))  # the recorder's own mocap has its own numbers
         out[(int(s) >> 8, int(s) & 0xFF)] = {
-            "counts": counts, "gaps": sequence_gaps(seq[sent]),
+            "counts": counts, **sequence_gaps(seq[sent]),
             "first_seq": int(seq[sent][0]) if sent.any() else -1,
         }
     return out
@@ -305,11 +377,40 @@ def rss_kb(pid: int | str = "self") -> int:
 # The run
 
 
+def warm_up(vehicle: Vehicle, seed: int = 0) -> None:
+    """Fly 6 s in this process (threads) through every path the soak uses: arming, depth, yaw and
+    surge, each sensor fault and its failsafe recovery, each link fault. Compiled (numba) code is
+    then loaded before the soak forks its parties, so no control step pays for a first call; a
+    robot does the same before it arms."""
+    sp = [(0.3, arm_command(True)), (0.3, depth_yaw_target(0.4, 1.0)), (2.0, body_velocity_target(0.2, 0.0)),
+          (3.6, arm_command(False)), (3.9, arm_command(True)), (3.9, depth_yaw_target(0.4, 1.0))]
+    plan = FaultPlan(imu_freeze_s=((3.0, 3.2),), imu_nan_s=((4.5, 4.6),), imu_dropouts_s=((4.8, 4.9),),
+                     depth_jumps=(DepthJump(5.0, 0.1, 5.5),), garbage_times_s=(5.2,),
+                     loss=0.2, loss_window_s=(2.0, 6.0), delay_s=0.02, jitter_s=0.01, delay_window_s=(2.0, 6.0),
+                     duplicate=0.1, duplicate_window_s=(2.0, 6.0), reorder=0.1, reorder_window_s=(2.0, 6.0))
+    from onboard.link import Link
+    from onboard.loop import OnboardLoop, VehicleClock
+
+    with Link("udpin:127.0.0.1:0") as link:  # construction and an unarmed step: no lock-step timeout here
+        OnboardLoop(vehicle, link, VehicleClock(), DEMO_CONFIG).step(0.0)
+    for attempt in range(3):  # a first compile of the armed paths may outlast the lock-step's 30 s
+        try:
+            run_closed_loop(vehicle, sp, 6.0, seed=seed, config=DEMO_CONFIG, faults=plan, history=False,
+                            processes=False)
+            return
+        except EndpointError:
+            if attempt == 2:
+                raise
+
+
 class Monitor:
     """Called after every lock-step period: RSS every simulated minute, progress, vehicle depth."""
 
-    def __init__(self, schedule: Schedule, vehicle: Vehicle, say=None, sample_s: float = MINUTE_S):
+    def __init__(self, schedule: Schedule, vehicle: Vehicle, say=None, sample_s: float = MINUTE_S,
+                 wall_limit_s: float | None = None):
         self.schedule = schedule
+        self.wall_limit_s = wall_limit_s
+        self.t_s = 0.0  # vehicle time flown
         self.surface_m = vehicle.environment.surface_depth
         self.floor_m = vehicle.environment.floor_depth
         self.say = say
@@ -323,6 +424,13 @@ class Monitor:
         self._next_end = 0
         self._ends = [t0 + m.duration_s - END_S for t0, m in zip(schedule.starts_s, schedule.missions)]
         self._every = None
+
+    def stop(self) -> bool:
+        """True once the wall-time limit is reached (checked at a simulated minute, after its sample)."""
+        if self.wall_limit_s is None or self.endpoint is None or self.wall0 is None:
+            return False
+        ep = self.endpoint
+        return (ep.k % self._every == 0 and time.perf_counter() - self.wall0 > self.wall_limit_s)
 
     def on_start(self, pids: dict) -> None:
         self.pids.update(pids)
@@ -339,6 +447,7 @@ class Monitor:
             self._every = int(round(self.sample_s / ep.period_s))
             self.sample(ep.time_s)
         t = ep.time_s + ep.period_s  # the plant has been advanced to the end of this period
+        self.t_s = t
         if ep.k % 10 == 0:
             depth = float(ep.plant.state[2]) - self.surface_m
             self.depth_max_m = max(self.depth_max_m, depth)
@@ -363,25 +472,33 @@ class SoakResult:
 
 
 def run_soak(vehicle: Vehicle, duration_s: float, seed: int, out_dir: Path, say=None,
-             warmup_s: float | None = None, faults: bool = True, sample_s: float = MINUTE_S) -> dict:
+             warmup_s: float | None = None, faults: bool = True, sample_s: float = MINUTE_S,
+             wall_limit_s: float | None = None) -> dict:
     """Fly the schedule of `seed` for `duration_s` in lock-step; measure; return the summary dict."""
     schedule = make_schedule(vehicle, duration_s, seed, faults=faults)
     if not schedule.missions:
         raise ValueError(f"duration {duration_s:g} s holds no whole random mission; use at least 120 s")
     out_dir = Path(out_dir)
-    monitor = Monitor(schedule, vehicle, say=say, sample_s=sample_s)
+    if say:
+        say("warming up: 6 s flown in this process through every path, so no control step compiles")
+    warm_up(vehicle, seed)
+    monitor = Monitor(schedule, vehicle, say=say, sample_s=sample_s, wall_limit_s=wall_limit_s)
     fly_s = schedule.starts_s[-1] + schedule.missions[-1].duration_s  # the last whole mission's end
     result = run_closed_loop(
         vehicle, schedule.setpoints(), fly_s, seed=seed, config=DEMO_CONFIG, out_dir=out_dir,
         faults=schedule.faults(), history=False, on_period=monitor, on_start=monitor.on_start,
-        progress=(lambda s: say(s) if say and not s.lstrip().startswith("t =") else None),
+        progress=(lambda s: say(s) if say and not s.lstrip().startswith("t =") else None), halt=monitor.stop,
     )
     if "error" in result.onboard:
         raise EndpointError(f"the onboard loop failed: {result.onboard['error']}")
     if "error" in result.recorder:
         raise EndpointError(f"the recorder failed: {result.recorder['error']}")
-    warm = warmup_s if warmup_s is not None else min(300.0, fly_s / 4)
-    return summarise(schedule, monitor, result, fly_s, warm, seed)
+    flown_s = min(fly_s, round(monitor.t_s, 6))
+    warm = warmup_s if warmup_s is not None else min(300.0, flown_s / 4)
+    summary = summarise(schedule, monitor, result, flown_s, warm, seed)
+    summary["stopped_early"] = flown_s < fly_s - 1e-6  # by the wall-time limit
+    summary["planned_s"] = fly_s
+    return summary
 
 
 def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup_s: float, seed: int) -> dict:
@@ -409,61 +526,91 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
         r = [s[who] for _, s in monitor.samples]
         memory[who] = {"rss_start_kb": r[0], "rss_after_warmup_kb": next((x for t, x in zip(ts, r) if t >= warmup_s), r[-1]),
                        "rss_end_kb": r[-1], "rss_max_kb": max(r), "growth_kb_per_h": growth_kb_per_h(ts, r, warmup_s)}
-    # packets: the plant endpoint's recording
+    # packets: the plant endpoint's recording (what crossed its link: with link faults, a packet
+    # the injector lost is counted in its stats, never recorded; a duplicate is recorded twice)
     plant_rec = scan_tlog(result.tlog)
-    me = plant_rec.get((1, 1), {"counts": Counter(), "gaps": 0, "first_seq": -1})
-    gcs = plant_rec.get((255, 190), {"counts": Counter(), "gaps": 0, "first_seq": -1})
-    onb = plant_rec.get((1, 191), {"counts": Counter(), "gaps": 0, "first_seq": -1})
+    none = {"counts": Counter(), "missing": 0, "duplicates": 0, "reordered": 0, "first_seq": -1}
+    me, gcs, onb = (plant_rec.get(src, none) for src in ((1, 1), (255, 190), (1, 191)))
+    inj = ep.link.stats().get("injected") if hasattr(ep.link, "inner") else None
+    out_lost = in_lost = out_dup = held_out = held_in = 0
+    if inj is not None:
+        out_lost, in_lost, out_dup = inj["out"]["lost"], inj["in"]["lost"], inj["out"]["duplicated"]
+        # still held back by the injector when the run stopped (delayed, or waiting to be overtaken)
+        held_out = inj["held_out"] + int(getattr(ep.link, "_out_behind", None) is not None)
+        held_in = inj["held_in"] + int(getattr(ep.link, "_in_behind", None) is not None)
     sent = Counter(ep.stats.sent)
     recorded_sent = me["counts"] + gcs["counts"]
     recorded_sent.pop(MOCAP, None)
     received = Counter(ep.stats.received) - HANDSHAKE
-    sent_missing = {k: sent[k] - recorded_sent.get(k, 0) for k in sent | recorded_sent if sent[k] != recorded_sent.get(k, 0)}
-    recv_missing = {k: received[k] - onb["counts"].get(k, 0) for k in received | onb["counts"]
-                    if received[k] != onb["counts"].get(k, 0)}
+    by_type = lambda a, b: {k: a[k] - b.get(k, 0) for k in sorted(a | b) if a[k] != b.get(k, 0)}  # noqa: E731
     # the telemetry recorder's recording against what the onboard loop sent it
     tel_rec = scan_tlog(result.telemetry_tlog)
-    tel = tel_rec.get((1, 191), {"counts": Counter(), "gaps": 0, "first_seq": -1})
+    tel = tel_rec.get((1, 191), none)
     tel_sent = int(ob["ground_link"]["packets_out"])
     tel_recorded = int(sum(tel["counts"].values()))
-    rec_counted = int(sum(result.recorder.get("messages", {}).values()))
+    n_sent, n_sent_rec = int(sum(sent.values())), int(sum(recorded_sent.values()))
+    n_recv, n_recv_rec = int(sum(received.values())), int(sum(onb["counts"].values()))
+    unexplained = {
+        "sent, not in the recording": n_sent - out_lost + out_dup - held_out - n_sent_rec,
+        "received, not in the recording": n_recv - n_recv_rec,
+        "endpoint sequence gaps": max(0, me["missing"] - out_lost - held_out),
+        "ground setpoint sequence gaps": gcs["missing"],
+        "onboard sequence gaps": max(0, onb["missing"] - in_lost - held_in),
+        "telemetry sent, not recorded": tel_sent - tel_recorded,
+        "telemetry sequence gaps": tel["missing"],
+    }
     packets = {
-        "endpoint_sent": int(sum(sent.values())),
-        "endpoint_sent_recorded": int(sum(recorded_sent.values())),
-        "endpoint_received": int(sum(received.values())),
-        "endpoint_received_recorded": int(sum(onb["counts"].values())),
-        "sent_not_recorded_by_type": sent_missing,
-        "received_not_recorded_by_type": recv_missing,
-        "sequence_gaps_plant_recording": {"1/1 endpoint": me["gaps"], "255/190 ground setpoints": gcs["gaps"],
-                                          "1/191 onboard": onb["gaps"]},
-        "onboard_first_recorded_seq": onb["first_seq"],  # 1: only the handshake HEARTBEAT (seq 0) precedes it
+        "endpoint_sent": n_sent,
+        "endpoint_sent_recorded": n_sent_rec,
+        "endpoint_received": n_recv,
+        "endpoint_received_recorded": n_recv_rec,
+        "injected": {"lost_out": out_lost, "lost_in": in_lost, "duplicated_out": out_dup,
+                     "held_out_at_end": held_out, "held_in_at_end": held_in, "detail": inj},
+        "sent_minus_recorded_by_type": by_type(sent, recorded_sent),
+        "received_minus_recorded_by_type": by_type(received, onb["counts"]),
+        "sequence_plant_recording": {f"{k}": {x: v[x] for x in ("missing", "duplicates", "reordered", "first_seq")}
+                                     for k, v in (("1/1 endpoint", me), ("255/190 ground", gcs), ("1/191 onboard", onb))},
         "telemetry_sent": tel_sent,
         "telemetry_recorded": tel_recorded,
-        "telemetry_recorder_counted": rec_counted,
-        "telemetry_sequence_gaps": tel["gaps"],
-        "telemetry_first_seq": tel["first_seq"],
+        "telemetry_recorder_counted": int(sum(result.recorder.get("messages", {}).values())),
+        "telemetry_sequence": {x: tel[x] for x in ("missing", "duplicates", "reordered", "first_seq")},
         "mocap_recorded": int(me["counts"].get(MOCAP, 0)),
         "endpoint_resends": ep.stats.resends,
         "onboard_link": ob.get("link", {}),
         "by_type_sent": dict(sorted(sent.items())),
         "by_type_received": dict(sorted(received.items())),
         "by_type_telemetry": dict(sorted(tel["counts"].items())),
+        "unexplained": unexplained,
     }
-    lost = (packets["endpoint_sent"] - packets["endpoint_sent_recorded"]) + (
-        packets["endpoint_received"] - packets["endpoint_received_recorded"]) + sum(
-        packets["sequence_gaps_plant_recording"].values()) + (tel_sent - tel_recorded) + tel["gaps"]
-    packets["lost"] = int(lost)
-    long_drops = sum(1 for i in schedule.injections if i.kind == "imu_dropout_long")
+    packets["lost"] = int(sum(abs(v) for v in unexplained.values()))
+    flown = [i for i in schedule.injections if i.t_s < fly_s]  # a run stopped early flew only these
+    long_drops = sum(1 for i in flown if i.kind in TRIPS)
     ends = np.asarray(monitor.end_depths_m)
+    # survived and recovered: the loop drives the jets again (armed) once the fault is over
+    timeline = armed_timeline(result.tlog)
+    after_s = RECOVER_ARM_S + 1.0
+    back = [armed_at(timeline, i.t_s + i.length_s + after_s) for i in flown]
+    for k in ("loss", "delay", "duplicate", "reorder"):
+        w = schedule.link.get(f"{k}_window_s")
+        if schedule.link.get(k if k != "delay" else "delay_s") and w[1] + after_s < fly_s:
+            m = schedule.mission_at(w[1] + after_s)
+            if m >= 0 and w[1] + after_s < schedule.starts_s[m] + schedule.missions[m].legs[-1].t0_s:
+                back.append(armed_at(timeline, w[1] + after_s))  # inside a mission's legs: armed
+    counts = Counter(i.kind for i in flown)
+    counts.update({k: v for k, v in schedule.counts().items() if k.startswith("link_")
+                   and schedule.link[k.removeprefix("link_") + "_window_s"][0] < fly_s})
     return {
         "seed": seed,
         "duration_s": fly_s,
         "wall_s": result.wall_s,
-        "missions": len(schedule.missions),
-        "faults": schedule.counts(),
-        "faults_total": len(schedule.injections),
+        "missions": len(monitor.end_depths_m),  # completed (all of them unless stopped early)
+        "faults": dict(sorted(counts.items())),
+        "faults_total": int(sum(counts.values())),
+        "fault_plan": {"injections": [i.__dict__ for i in flown], "link": schedule.link},
         "failsafe_entries": ob["failsafe_entries"],
         "failsafe_expected": long_drops,
+        "faults_checked_recovered": len(back),  # armed again 1.6 s after the fault ended
+        "faults_recovered": int(sum(back)),
         "arm_refusals": ob["arm_refusals"],
         "step_errors": ob["step_errors"],
         "limit_violations": ob["limit_violations"],
@@ -484,10 +631,12 @@ def table(s: dict) -> str:
     d, m, p = s["deadlines"], s["memory"], s["packets"]
     faults = ", ".join(f"{k} {v}" for k, v in s["faults"].items()) or "none"
     rows = [
-        ("run", "simulated / wall time", f"{s['duration_s']:.0f} s / {s['wall_s']:.0f} s"),
+        ("run", "simulated / wall time", f"{s['duration_s']:.0f} s / {s['wall_s']:.0f} s"
+                + (f" (stopped by the wall-time limit; {s['planned_s']:.0f} s planned)" if s.get("stopped_early") else "")),
         ("", "missions (flown / surfaced)", f"{s['missions']} / {s['missions_surfaced']}"),
         ("", "faults injected", f"{s['faults_total']}: {faults}"),
-        ("", "failsafe trips (expected) / recovered", f"{s['failsafe_entries']} ({s['failsafe_expected']})"),
+        ("", "failsafe trips (expected)", f"{s['failsafe_entries']} ({s['failsafe_expected']})"),
+        ("", "armed again 1.6 s after the fault", f"{s['faults_recovered']} of {s['faults_checked_recovered']}"),
         ("", "step errors / limit violations", f"{s['step_errors']} / {s['limit_violations']}"),
         ("deadlines", f"steps over {d['period_ms']:.0f} ms, CPU time", f"{d['missed_cpu']} of {d['steps']}"),
         ("", "  CPU max / p99.9 / median", f"{d['cpu_max_ms']:.2f} / {d['cpu_p999_ms']:.2f} / {d['cpu_median_ms']:.2f} ms"),
@@ -503,9 +652,11 @@ def table(s: dict) -> str:
     rows += [
         ("packets", "endpoint sent / in recording", f"{p['endpoint_sent']} / {p['endpoint_sent_recorded']}"),
         ("", "endpoint received / in recording", f"{p['endpoint_received']} / {p['endpoint_received_recorded']}"),
-        ("", "sequence gaps in mission.tlog", f"{sum(p['sequence_gaps_plant_recording'].values())}"),
-        ("", "telemetry sent / recorded (gaps)", f"{p['telemetry_sent']} / {p['telemetry_recorded']} ({p['telemetry_sequence_gaps']})"),
-        ("", "lost", f"{p['lost']}"),
+        ("", "  lost / duplicated by the link injector", f"{p['injected']['lost_out'] + p['injected']['lost_in']} / "
+                                                              f"{p['injected']['duplicated_out']} out"),
+        ("", "sequence gaps not injected, mission.tlog", f"{sum(v for k, v in p['unexplained'].items() if 'gaps' in k and 'telemetry' not in k)}"),
+        ("", "telemetry sent / recorded (seq gaps)", f"{p['telemetry_sent']} / {p['telemetry_recorded']} ({p['telemetry_sequence']['missing']})"),
+        ("", "lost (not explained by injection)", f"{p['lost']}"),
     ]
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)
@@ -525,6 +676,8 @@ def verdict(s: dict, max_growth_kb_per_h: float) -> list:
         bad.append(f"{s['packets']['lost']} packets lost from the recordings")
     if s["failsafe_entries"] != s["failsafe_expected"]:
         bad.append(f"{s['failsafe_entries']} failsafe trips, {s['failsafe_expected']} expected")
+    if s["faults_recovered"] != s["faults_checked_recovered"]:
+        bad.append(f"{s['faults_checked_recovered'] - s['faults_recovered']} faults not recovered from")
     if s["missions_surfaced"] != s["missions"]:
         bad.append(f"{s['missions'] - s['missions_surfaced']} missions did not end at the surface")
     return bad
@@ -542,6 +695,8 @@ def configure(parser) -> None:
                         help="directory for mission.tlog, telemetry.tlog and summary.json (default ./jetloop-soak/)")
     parser.add_argument("--vehicle", default=None, help="vehicle TOML (default: the reference vehicle asr4)")
     parser.add_argument("--no-faults", action="store_true", help="random missions only, no fault injected")
+    parser.add_argument("--wall-limit", type=float, default=None, metavar="S",
+                        help="stop (and report what was flown) after this many seconds of wall time")
     parser.add_argument("--max-growth", type=float, default=1024.0, metavar="KB_PER_H",
                         help="memory growth per process that still passes, kB per simulated hour (default 1024)")
 
@@ -567,7 +722,8 @@ def run(args) -> int:
     say(f"jetloop soak: {args.duration:.0f} s simulated, seed {args.seed}, vehicle {vehicle.name}, "
         f"faults {'off' if args.no_faults else 'on'}, output {out}/")
     try:
-        summary = run_soak(vehicle, args.duration, args.seed, out, say=say, faults=not args.no_faults)
+        summary = run_soak(vehicle, args.duration, args.seed, out, say=say, faults=not args.no_faults,
+                           wall_limit_s=args.wall_limit)
     except (EndpointError, ValueError) as exc:
         print(f"jetloop soak: {exc}", file=sys.stderr)
         return 1

@@ -1,0 +1,197 @@
+"""The soak (hil.soak): random missions valid, schedules and faults as planned, the measurements'
+arithmetic, the fixed-memory histories, and a short soak holding the hour's properties."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hil import soak
+from hil.faults import FaultPlan
+from onboard.history import PairRing, Ring
+from onboard.loop import arm_command
+from onboard.vehicle import load_vehicle
+
+V = load_vehicle()
+ENV = soak.Envelope.from_vehicle(V)
+
+
+# -- missions ---------------------------------------------------------------------------------------
+
+
+def test_envelope_keeps_the_hull_off_the_floor():
+    # deepest setpoint: pool depth - hull radius - 0.15 m margin (asr4: 1.2 - 0.16 - 0.15 = 0.89 m)
+    e = V.environment
+    assert ENV.depth_max_m == pytest.approx(e.floor_depth - e.surface_depth - V.body.radius - 0.15)
+    assert ENV.depth_max_m == pytest.approx(0.89)
+    shallow = V.with_values({"environment.floor_depth": 0.5})  # 0.5 - 0.16 - 0.15 = 0.19 < 0.25
+    with pytest.raises(ValueError, match="too shallow"):
+        soak.Envelope.from_vehicle(shallow)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_generator_makes_valid_missions(seed):
+    m = soak.random_mission(np.random.default_rng(seed), ENV)
+    assert soak.mission_problems(m, ENV) == []
+    legs = m.legs
+    assert legs[0].name == "dive" and legs[0].t0_s == m.arm_s == soak.ARM_S
+    assert ENV.depth_min_m <= legs[0].depth_m <= ENV.depth_max_m and legs[0].surge_m_s == 0.0
+    assert ENV.legs_min + 2 <= len(legs) <= ENV.legs_max + 2  # dive + 2..5 random + surface
+    assert legs[-1].name == "surface" and legs[-1].depth_m == 0.0 and legs[-1].surge_m_s == 0.0
+    assert m.duration_s == pytest.approx(legs[-1].t0_s + soak.SURFACE_S + soak.END_S)
+    for a, b in zip(legs[1:-1], legs[2:]):
+        assert ENV.leg_min_s - 1e-9 <= b.t0_s - a.t0_s <= ENV.leg_max_s + 1e-9
+
+
+def test_mission_problems_name_what_is_wrong():
+    good = soak.random_mission(np.random.default_rng(0), ENV)
+    legs = list(good.legs)
+    too_deep = soak.Mission(tuple([legs[0].__class__(legs[0].t0_s, "dive", depth_m=1.0, yaw_rad=0.0, surge_m_s=0.0,
+                                                     settle_s=6.0)] + legs[1:]), good.duration_s)
+    assert any("depth 1.0 m outside" in p for p in soak.mission_problems(too_deep, ENV))
+    no_surface = soak.Mission(tuple(legs[:-1]), good.duration_s)
+    assert any("does not stop and surface" in p for p in soak.mission_problems(no_surface, ENV))
+    squeezed = soak.Mission((legs[0], legs[1].__class__(legs[0].t0_s + 1.0, "x")) + tuple(legs[2:]), good.duration_s)
+    assert any("lasts 1.00 s" in p for p in soak.mission_problems(squeezed, ENV))
+
+
+def test_schedule_flies_missions_back_to_back_with_faults_inside_them():
+    s = soak.make_schedule(V, 900.0, seed=5)
+    ends = [t0 + m.duration_s for t0, m in zip(s.starts_s, s.missions)]
+    assert s.starts_s[0] == 0.0 and ends[-1] <= 900.0
+    assert all(b == pytest.approx(a) for a, b in zip(ends, s.starts_s[1:]))  # no gap, no overlap
+    assert s.injections and {i.kind for i in s.injections} <= set(soak.KINDS)
+    for i in s.injections:
+        m, t0 = s.missions[i.mission], s.starts_s[i.mission]
+        # submerged and armed: after the dive settled, recovered before the surface leg
+        assert t0 + m.arm_s + m.legs[0].settle_s <= i.t_s
+        assert i.t_s + i.length_s + soak.RECOVER_ARM_S <= t0 + m.legs[-1].t0_s
+        assert s.mission_at(i.t_s) == i.mission
+    plan = s.faults()
+    assert isinstance(plan, FaultPlan) and plan.link_faults
+    n_windows = len(plan.imu_dropouts_s) + len(plan.imu_nan_s) + len(plan.imu_freeze_s) + len(plan.depth_jumps)
+    assert n_windows + len(plan.garbage_times_s) == len(s.injections)
+    # link faults: one window each, a sixth of the run, inside it
+    for name in ("loss", "delay", "duplicate", "reorder"):
+        w = s.link[f"{name}_window_s"]
+        assert w[1] - w[0] == pytest.approx(900.0 / 6) and 0 <= w[0] and w[1] <= 900.0
+    assert 0.1 <= s.link["loss"] <= 0.3
+
+
+def test_failsafe_recovery_follows_each_long_imu_outage():
+    s = soak.make_schedule(V, 1200.0, seed=2)
+    trips = [i for i in s.injections if i.kind in soak.TRIPS]
+    assert trips, "seed 2 draws long IMU outages"
+    sp = s.setpoints()
+    assert [t for t, _ in sp] == sorted(t for t, _ in sp)
+    disarms = {round(t, 6) for t, m in sp if m.get_type() == "COMMAND_LONG" and m.param1 == 0.0}
+    arms = [(round(t, 6), k) for k, (t, m) in enumerate(sp) if m.get_type() == "COMMAND_LONG" and m.param1 == 1.0]
+    for i in trips:
+        t1 = i.t_s + i.length_s
+        assert round(t1 + soak.RECOVER_DISARM_S, 6) in disarms
+        k = next(k for t, k in arms if t == round(t1 + soak.RECOVER_ARM_S, 6))
+        # the setpoint in force goes again right after the re-arm, at the same instant
+        assert sp[k + 1][0] == pytest.approx(t1 + soak.RECOVER_ARM_S)
+        assert sp[k + 1][1].get_type() == "SET_POSITION_TARGET_LOCAL_NED"
+    # every mission arms at its start + 1 s and disarms when it ends
+    assert sum(1 for t, m in sp if m.get_type() == "COMMAND_LONG" and m.param1 == 1.0) == len(s.missions) + len(trips)
+    assert arm_command(True).param1 == 1.0
+
+
+def test_no_faults_schedule_is_missions_only():
+    s = soak.make_schedule(V, 600.0, seed=1, faults=False)
+    assert s.injections == () and s.faults().empty and s.counts() == {}
+
+
+# -- measurements ---------------------------------------------------------------------------------
+
+
+def test_sequence_gaps_unwrap_and_count():
+    assert soak.sequence_gaps([253, 254, 255, 0, 1]) == {"missing": 0, "duplicates": 0, "reordered": 0}
+    # 254 255 [0 lost] 1 3 2 2 : one missing (0), one duplicate (2), one step back (3 -> 2)
+    assert soak.sequence_gaps([254, 255, 1, 3, 2, 2]) == {"missing": 1, "duplicates": 1, "reordered": 1}
+    assert soak.sequence_gaps([10, 20]) == {"missing": 9, "duplicates": 0, "reordered": 0}
+
+
+def test_growth_is_the_slope_after_warmup_in_kb_per_hour():
+    t = np.arange(0, 3601, 60.0)
+    rss = 100_000 + 0.5 * t  # 0.5 kB/s = 1800 kB/h
+    rss[:3] += 50_000  # start-up, before the warm-up ends, must not count
+    assert soak.growth_kb_per_h(t, rss, warmup_s=300) == pytest.approx(1800.0)
+    assert math.isnan(soak.growth_kb_per_h(t[:2], rss[:2], warmup_s=0))
+
+
+def test_armed_at_reads_the_newest_command_at_or_before():
+    timeline = (np.array([0.0, 0.01, 0.02, 0.03]), np.array([False, True, True, False]))
+    assert not soak.armed_at(timeline, -0.005)  # nothing yet
+    assert not soak.armed_at(timeline, 0.005) and soak.armed_at(timeline, 0.01) and soak.armed_at(timeline, 0.029)
+    assert not soak.armed_at(timeline, 5.0)
+
+
+def test_rss_of_this_process_is_positive_and_of_a_gone_process_is_minus_one():
+    assert soak.rss_kb() > 1000
+    assert soak.rss_kb(2 ** 22 + 7) == -1
+
+
+# -- fixed-memory histories ------------------------------------------------------------------------
+
+
+def test_ring_keeps_the_newest_in_order_like_a_deque():
+    from collections import deque
+    from itertools import islice
+
+    r, d = Ring(4), deque(maxlen=4)
+    assert not r and np.asarray(r).size == 0
+    for x in range(1, 11):
+        r.append(float(x))
+        d.append(float(x))
+        assert list(r) == list(d) and list(reversed(r)) == list(reversed(d)) and len(r) == len(d)
+    assert list(islice(reversed(r), 2)) == [10.0, 9.0]
+    assert np.percentile(r, 50) == pytest.approx(8.5) and np.mean(r) == pytest.approx(8.5)
+
+
+def test_pair_ring_holds_time_and_vector():
+    p = PairRing(2)
+    p.reserve(3)
+    for k in range(3):
+        p.append((0.01 * k, np.array([k, k + 1.0, k + 2.0])))
+    got = list(p)
+    assert [t for t, _ in got] == [0.01, 0.02]
+    np.testing.assert_array_equal(got[1][1], [2.0, 3.0, 4.0])
+
+
+def test_ring_memory_is_resident_from_the_start():
+    """The whole array is written when built, so appending moves the process's memory by nothing."""
+    before = soak.rss_kb()
+    r = Ring(2_000_000)  # 16 MB of float64
+    after_build = soak.rss_kb()
+    for x in range(200_000):
+        r.append(float(x))
+    after_fill = soak.rss_kb()
+    assert after_build - before >= 15_000  # resident at once (16e6 B = 15 625 kB)
+    assert after_fill - after_build < 2_000
+
+
+# -- a short soak: the hour's properties over two minutes -----------------------------------------
+
+
+@pytest.mark.slow
+def test_short_soak_misses_no_deadline_grows_no_memory_loses_no_packet(tmp_path):
+    s = soak.run_soak(V, 130.0, seed=3, out_dir=tmp_path, warmup_s=30.0, sample_s=10.0)
+    assert s["missions"] >= 1 and s["faults_total"] >= 1
+    assert s["deadlines"]["missed_cpu"] == 0, s["deadlines"]["overruns"]
+    assert s["deadlines"]["steps"] >= int(s["duration_s"] * 100) - 2
+    for who in ("plant", "onboard", "recorder"):
+        # 10 MB/h: a deque of floats at 100 Hz would grow ~11 MB/h per stream; a history of
+        # (t, command) pairs ~100 MB/h
+        assert s["memory"][who]["growth_kb_per_h"] < 10_000, (who, s["memory"][who])
+    p = s["packets"]
+    assert p["lost"] == 0, p["unexplained"]
+    assert p["endpoint_received"] == p["endpoint_received_recorded"] > 0
+    assert p["telemetry_sent"] == p["telemetry_recorded"] == p["telemetry_recorder_counted"] > 0
+    assert s["failsafe_entries"] == s["failsafe_expected"]
+    assert s["faults_recovered"] == s["faults_checked_recovered"] > 0
+    assert s["missions_surfaced"] == s["missions"]
+    assert soak.verdict(s, max_growth_kb_per_h=10_000) == []
