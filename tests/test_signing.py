@@ -136,6 +136,7 @@ def test_onboard_loop_with_a_key_obeys_only_signed_commands():
         link.close()
 
 
+@pytest.mark.slow
 def test_jetloop_onboard_with_a_key_file_answers_only_signed_commands(tmp_path):
     """The robot's own process: `jetloop onboard --key` acknowledges an arm command signed with
     the key and ignores the same command unsigned; one sender does both, so the loop's replies
