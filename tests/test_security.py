@@ -333,15 +333,20 @@ def test_jetloop_onboard_process_counts_each_attack_in_its_telemetry_and_exit_su
                    packet(depth_yaw(1.3), OTHER_KEY), altered(good, -13, 77),  # bad x2
                    packet(depth_yaw(1.4), KEY, src=42, unix_s=time.time() + 1),  # foreign
                    packet(depth_yaw(9.0), KEY, unix_s=time.time() + 2)]  # outside the envelope
-        # one IMU sample starts the control ticks (and with them the telemetry): sensors need no signature
-        link.write_raw(packet(mavlink.MAVLink_highres_imu_message(10_000, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0,
-                                                                  0, 63, 0), src=1, comp=1))
+        def imu(k):  # IMU samples start the control ticks (and the telemetry): sensors need no signature
+            return packet(mavlink.MAVLink_highres_imu_message(10_000 * k, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+                                                              0, 63, 0), src=1, comp=1)
+
+        link.write_raw(imu(1))
         for data in attacks:
             link.write_raw(data)
         want = {"sig_unsig": 2.0, "sig_replay": 2.0, "sig_bad": 2.0, "foreign": 1.0, "sp_refused": 1.0}
         seen, texts = {}, []
         deadline = time.monotonic() + 30
+        n_imu = 1
         while time.monotonic() < deadline and any(seen.get(k) != v for k, v in want.items()):
+            n_imu += 1
+            link.write_raw(imu(n_imu))
             m = link.recv(0.2)
             if m is not None and m.get_type() == "NAMED_VALUE_FLOAT":
                 seen[m.name] = m.value
