@@ -3,10 +3,13 @@
 MAVLink 2 signing (https://mavlink.io/en/guide/message_signing.html): a 32-byte secret key;
 each signed packet carries link id, a 48-bit timestamp (10 us since 2015-01-01) and the first
 6 bytes of sha256(key + packet). `load_key` reads a key file (32 raw bytes or 64 hex digits),
-`enable_signing` sets a pymavlink parser up to sign what it sends, and `SigningState` +
-`accept_command(msg, state)` is the robot's check: with a key, a command (anything that moves or
-reconfigures the vehicle) is accepted only with a good signature and a timestamp newer than the
-last one of its stream (pymavlink's `check_signature`, replay protection included).
+`enable_signing` sets a pymavlink parser up to sign what it sends (`refresh_timestamp` keeps its
+timestamp on the clock), and `SigningState.check` is the robot's check: with a key, a command
+(anything that moves or reconfigures the vehicle) is accepted only with a good signature and a
+timestamp newer than the last one of its stream. These are pymavlink's `check_signature` rules,
+with one change: the signature is checked first, because pymavlink stores a packet's timestamp
+before comparing the hash, so one forged packet stamped in the future would lock the real
+sender's stream out.
 It lives in `onboard` because the robot must carry it; the ground station imports it.
 
 `CommandGate` is everything the robot checks before a ground message may act, in this order:
