@@ -393,6 +393,8 @@ class OnboardLoop:
     def poll(self) -> None:
         """Step if a control tick is due, else wait (at most until the tick) for one message."""
         self.start()
+        if self._next_tick is None and not self.clock.lockstep:
+            self._next_tick = self.clock.now()  # real time ticks with or without sensors: HEARTBEAT at 1 Hz
         if self._tick_due():
             now = self.clock.now()
             if now - self._next_tick > 2 * self.period_s:  # far behind (a gap): skip, do not burst
