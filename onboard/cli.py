@@ -53,14 +53,16 @@ def configure(parser) -> None:
 def run(args) -> int:
     from onboard.link import Link, LinkError
     from onboard.loop import LoopConfig, OnboardLoop, VehicleClock, WallClock
-    from onboard.signing import GCS_SYSTEMS, CommandGate, SigningError, load_key
+    from onboard.signing import GCS_SYSTEMS, SigningError, load_key
     from onboard.vehicle import VehicleFileError, load_vehicle
 
     try:
         vehicle = load_vehicle(args.vehicle)
         key = load_key(args.key) if args.key else None
         ground_systems = tuple(args.ground_system) if args.ground_system else GCS_SYSTEMS
-        CommandGate(None, ground_systems)  # checks the ids before anything opens a socket
+        for sysid in ground_systems:
+            if not 1 <= sysid <= 255:
+                raise SigningError(f"--ground-system {sysid}: expected a MAVLink system id 1..255")
     except (VehicleFileError, SigningError) as exc:
         print(f"jetloop onboard: {exc}", file=sys.stderr)
         return 2

@@ -252,6 +252,14 @@ def test_a_long_running_signed_ground_is_obeyed_by_a_robot_that_just_started(rob
         ground.close()
 
 
+def test_jetloop_onboard_refuses_a_bad_ground_system_id_before_opening_a_socket(capsys):
+    from ground.cli import main
+
+    port = free_udp_port()
+    assert main(["onboard", "--link", f"udpin:127.0.0.1:{port}", "--ground-system", "300"]) == 2
+    assert "--ground-system 300: expected a MAVLink system id 1..255" in capsys.readouterr().err
+
+
 # -- envelope and command parameters --------------------------------------------------------------------
 
 def test_setpoints_outside_the_envelope_are_refused_with_a_statustext(robot):
