@@ -285,9 +285,14 @@ class InjectedCounts:
     delayed: int = 0
     reordered: int = 0
     passed: int = 0  # packets that went through the fault decisions (not exempt, window or not)
+    lost_by_type: dict = field(default_factory=dict)  # message type -> packets lost
+
+    def lose(self, name: str) -> None:
+        self.lost += 1
+        self.lost_by_type[name] = self.lost_by_type.get(name, 0) + 1
 
     def as_dict(self) -> dict:
-        return dict(self.__dict__)
+        return {**self.__dict__, "lost_by_type": dict(self.lost_by_type)}
 
 
 class FaultyLink:
@@ -353,7 +358,7 @@ class FaultyLink:
         fate = link_fate(self.plan, t, self._rng_out.random(DRAWS_PER_PACKET))
         self.out.passed += 1
         if fate.lost:
-            self.out.lost += 1
+            self.out.lose(name)
             return
         self.out.duplicated += fate.copies - 1
         if fate.delay_s > 0:
@@ -397,7 +402,7 @@ class FaultyLink:
         fate = link_fate(self.plan, t, self._rng_in.random(DRAWS_PER_PACKET))
         self.into.passed += 1
         if fate.lost:
-            self.into.lost += 1
+            self.into.lose(m.get_type())
             return None
         self.into.duplicated += fate.copies - 1
         if fate.delay_s > 0:

@@ -599,3 +599,142 @@ def test_the_flag_values_are_the_onboard_monitors():
     from onboard.monitor import Fault
 
     assert FLAG == {f.name: f.value for f in Fault}
+
+
+# --- the closed loop: plant + onboard loop + recorder, lock-step over loopback UDP ---------------------
+#
+# For each fault: the onboard side detects it (its summary's faults_seen has the flag, and the
+# fault is raised at or after the injection), reports it in telemetry (the ground recording holds
+# NAMED_VALUE_FLOAT "faults" with the bit and STATUSTEXT "FAULT <FLAG> ..."), and the plant's
+# recording marks when it was injected.
+
+from hil.demo import Leg, Mission, run_closed_loop  # noqa: E402
+from hil.faults import FLAG  # noqa: E402
+
+SURFACE_M = V.environment.surface_depth
+HOLD_DEPTH_M = 0.4
+
+
+@pytest.fixture(scope="module")
+def warm():
+    """Compile the onboard loop once in this process, so every forked onboard loop starts at once."""
+    from onboard.loop import OnboardLoop, VehicleClock
+
+    link = Link("udpin:127.0.0.1:0")
+    OnboardLoop(V, link, VehicleClock()).step(0.0)
+    link.close()
+
+
+def hold(duration_s, yaw_at_s=None):
+    """Arm and dive to 0.4 m at 0.5 s, hold depth and heading (a 45 deg yaw step at yaw_at_s)."""
+    legs = [Leg(0.5, "dive", depth_m=HOLD_DEPTH_M, yaw_rad=0.0, surge_m_s=0.0)]
+    if yaw_at_s is not None:
+        legs.append(Leg(yaw_at_s, "yaw", yaw_rad=math.radians(45.0)))
+    return Mission(tuple(legs), duration_s, arm_s=0.5)
+
+
+def fly(plan, mission, tmp_path, seed=1):
+    r = run_closed_loop(V, mission.setpoints(), mission.duration_s, seed=seed, faults=plan, out_dir=tmp_path)
+    assert "error" not in r.onboard, r.onboard.get("error")
+    assert r.endpoint["periods"] == round(mission.duration_s * V.sensors.imu_rate)
+    return r
+
+
+def telemetry_faults(path):
+    """(OR of the NAMED_VALUE_FLOAT "faults" values, [STATUSTEXT texts]) of the onboard telemetry."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    mask, texts = 0, []
+    while (m := conn.recv_match(type=["NAMED_VALUE_FLOAT", "STATUSTEXT"])) is not None:
+        if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == "faults":
+            mask |= int(m.value)
+        elif m.get_type() == "STATUSTEXT":
+            texts.append(m.text)
+    conn.close()
+    return mask, texts
+
+
+def assert_detected(r, plan, flags):
+    """Every injected fault named in `flags` was detected, reported and marked."""
+    seen = r.onboard.get("faults_seen", 0)
+    found = {d["flag"]: d for d in r.extra["detections"]}
+    mask, texts = telemetry_faults(r.telemetry_tlog)
+    marks = [text for _, text in read_injections(r.tlog)]
+    assert marks == [text for _, text in injection_events(plan)
+                     if _ < r.endpoint["periods"] / V.sensors.imu_rate]  # the plant's recording says when
+    for name in flags:
+        assert seen & FLAG[name], f"{name} not in the onboard summary's faults_seen ({seen})"
+        assert found[name]["detected_s"] is not None, f"{name} raised only before its injection"
+        assert mask & FLAG[name], f"{name} not in the NAMED_VALUE_FLOAT 'faults' telemetry"
+        assert any(t.startswith(f"FAULT {name}") for t in texts), f"no STATUSTEXT 'FAULT {name}' ({texts})"
+
+
+def truth_window(r, t0, t1):
+    sel = [s for s in r.truth if t0 <= s.time_s < t1]
+    depth = np.array([s.pos_ned_m[2] - SURFACE_M for s in sel])
+    rp = np.degrees(np.abs(np.array([s.euler_rad[:2] for s in sel])))
+    return depth, rp
+
+
+@pytest.mark.slow
+def test_closed_loop_thirty_percent_loss_is_detected_and_the_loop_still_flies(warm, tmp_path):
+    plan = FaultPlan(loss=0.3, loss_window_s=(2.0, math.inf))
+    r = fly(plan, hold(8.0), tmp_path)
+    assert_detected(r, plan, ["LINK_LOSS"])
+    assert r.endpoint["resends"] == 0  # lock-step paid no reply timeout for the losses
+    lost = r.endpoint["link"]["injected"]["in"]["lost_by_type"]["HIL_ACTUATOR_CONTROLS"]
+    assert r.endpoint["commands_applied"] == r.endpoint["periods"] - lost  # every other one was applied
+    assert abs(lost / 600 - 0.3) < binomial_bound(0.3, 600)  # 6 s of 100 Hz commands in the window
+    assert r.onboard["failsafe_entries"] == 0
+    depth, rp = truth_window(r, 3.0, 8.0)
+    assert np.max(np.abs(depth - HOLD_DEPTH_M)) < 0.05 and np.max(rp) < 2.0  # held depth and level
+
+
+@pytest.mark.slow
+def test_closed_loop_delay_duplicates_and_reordering_are_detected(warm, tmp_path):
+    # the monitor raises LINK_DELAY above 50 ms mean sample age (MonitorConfig.delay_threshold_s)
+    w = (2.0, math.inf)
+    plan = FaultPlan(delay_s=0.08, jitter_s=0.02, delay_window_s=w, duplicate=0.05, duplicate_window_s=w,
+                     reorder=0.05, reorder_window_s=w)
+    r = fly(plan, hold(6.0), tmp_path)
+    assert_detected(r, plan, ["LINK_DELAY", "LINK_DUPLICATE", "LINK_REORDER"])
+    assert r.endpoint["resends"] == 0 and r.onboard["failsafe_entries"] == 0
+    depth, rp = truth_window(r, 3.0, 6.0)
+    assert np.max(np.abs(depth - HOLD_DEPTH_M)) < 0.05 and np.max(rp) < 5.0
+
+
+@pytest.mark.slow
+def test_closed_loop_one_jet_dead_reconfigures_and_holds_depth_and_attitude(warm, tmp_path):
+    """Bounds: from 1.5 s after the jet dies (detection ~0.6 s, then the QP without it): depth
+    error < 5 cm, |roll|, |pitch| < 5 deg; during the transient < 10 deg."""
+    plan = FaultPlan(jets=(JetFault(2, 0.0, 3.0),))
+    r = fly(plan, hold(9.0), tmp_path)
+    assert_detected(r, plan, ["JET_DEAD"])
+    assert r.onboard["failsafe_entries"] == 0
+    _, rp = truth_window(r, 3.0, 4.5)
+    assert np.max(rp) < 10.0
+    depth, rp = truth_window(r, 4.5, 9.0)
+    assert np.max(np.abs(depth - HOLD_DEPTH_M)) < 0.05
+    assert np.max(rp) < 5.0
+    # the plant's jet 2 really is dead: no thrust from it whatever the allocator asks
+    late = np.array([c[:K] for t, c in r.commands if t >= 4.5])
+    assert late.size and np.all(late[:, 1] <= 1e-6)  # and the allocator stopped asking
+
+
+@pytest.mark.slow
+def test_closed_loop_weak_jet_and_stuck_joint_are_detected(warm, tmp_path):
+    # a 45 deg yaw step after the onset makes the azimuths move away from where unit 1's is stuck
+    plan = FaultPlan(jets=(JetFault(3, 0.5, 3.0),), stuck_joints=(StuckJoint(1, "azimuth", 3.0),))
+    r = fly(plan, hold(8.0, yaw_at_s=4.0), tmp_path)
+    assert_detected(r, plan, ["JET_WEAK", "JOINT_STUCK"])
+    depth, rp = truth_window(r, 4.0, 8.0)
+    assert np.max(np.abs(depth - HOLD_DEPTH_M)) < 0.05 and np.max(rp) < 5.0
+
+
+@pytest.mark.slow
+def test_closed_loop_imu_freeze_nan_silence_and_depth_jump_are_detected(warm, tmp_path):
+    plan = FaultPlan(imu_freeze_s=((3.0, 3.2),), imu_nan_s=((4.0, 4.2),), depth_jumps=(DepthJump(5.0, 0.3),),
+                     imu_dropouts_s=((6.0, 6.5),))
+    r = fly(plan, hold(7.0), tmp_path)
+    assert_detected(r, plan, ["IMU_FROZEN", "IMU_NAN", "DEPTH_JUMP", "IMU_LOST"])
