@@ -54,7 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .compensation import servo_motion
+from .compensation import _servo_motion  # the compiled kernel of compensation.servo_motion (spec 4)
 
 
 class Fault(enum.IntFlag):
@@ -74,6 +74,7 @@ class Fault(enum.IntFlag):
 
 
 NONE = Fault(0)
+MODEL_SETTLE_S = 0.5  # > 5 motor time constants: a model started mid-flight has forgotten its start
 EVENT_HISTORY = 10_000  # events kept (a flapping fault in a long soak must not grow memory)
 
 
@@ -283,6 +284,11 @@ class FaultMonitor:
         # the models at the last ticks (t, n, n_cmd, joints, joint_cmd): feedback that arrives late
         # (a delayed link) is compared with the model at its own time, not with the model now
         self._past: deque = deque(maxlen=64)
+        # The models run only once actuator feedback has been seen (none: nothing to compare, no
+        # cost); they start at the command in force and judge nothing for MODEL_SETTLE_S.
+        self._models_on = False
+        self._cmd = np.zeros(3 * k)
+        self._judge_from = math.inf
         # jets
         self._sxy = [0.0] * k
         self._sxx = [0.0] * k
@@ -300,6 +306,7 @@ class FaultMonitor:
         self._joint_new = False
         self._deb_joint = [_Debounce() for _ in range(2 * k)]
         self._stuck = [math.nan] * (2 * k)
+        self._stuck_count = 0
         # IMU
         self._imu_last = None
         self._imu_repeats = 0
@@ -472,7 +479,17 @@ class FaultMonitor:
         cmd = self._j_cmd if cmd is None else cmd
         if c.servo_time_constant_s <= 0 or dt <= 0:
             return np.clip(cmd, -lim, lim) if dt > 0 else j0
-        return servo_motion(j0, cmd, dt, c.servo_time_constant_s, c.servo_rate_limit_rad_s, lim)[0]
+        return _servo_motion(j0, cmd, float(dt), c.servo_time_constant_s, c.servo_rate_limit_rad_s, lim)[0]
+
+    def _start_models(self) -> None:
+        """First actuator feedback: the models start at the command in force (settled)."""
+        self._models_on = True
+        c, k = self.config, self.k
+        self._n_cmd = np.minimum(np.maximum(self._cmd[:k], 0.0), c.n_max_rev_s)
+        self._j_cmd = np.ascontiguousarray(self._cmd[k:3 * k])
+        self._n_model = self._n_cmd.copy()
+        self._j_model = np.clip(self._j_cmd, -c.angle_limit_rad, c.angle_limit_rad)
+        self._judge_from = self._t_model + MODEL_SETTLE_S
 
     def _snapshot(self, t: float):
         """The model state in force at time t: (t0, n0, n_cmd, j0, j_cmd), or None if too old."""
@@ -487,6 +504,9 @@ class FaultMonitor:
         """ESC telemetry received at loop time t_s: rpm of units first_unit, first_unit + 1, ..."""
         c = self.config
         if self._t_model is None or not math.isfinite(t_s):
+            return
+        if not self._models_on:
+            self._start_models()
             return
         # ESC telemetry carries no time: it is taken as measured the link's mean delay ago
         t_meas = t_s - self.delay_s
@@ -518,8 +538,11 @@ class FaultMonitor:
         """Measured joint angles (ACTUATOR_OUTPUT_STATUS) stamped t_s."""
         if self._t_model is None or not math.isfinite(t_s):
             return  # before the first command: no reference to compare with
+        if not self._models_on:
+            self._start_models()
+            return
         snap = self._snapshot(t_s)
-        meas = np.concatenate([np.asarray(alpha_rad, float), np.asarray(beta_rad, float)])
+        meas = np.array(tuple(alpha_rad) + tuple(beta_rad), dtype=float)
         if snap is None or meas.shape != self._j_model.shape:
             return  # older than the models kept
         self._j_meas = meas
@@ -553,6 +576,9 @@ class FaultMonitor:
 
     def _check_joints(self, t: float) -> bool:
         c = self.config
+        if (not self._stuck_count and float(self._j_resid.max()) <= c.joint_tolerance_rad
+                and not any(d.since is not None for d in self._deb_joint)):
+            return False  # every joint where the model says, none stuck, none on its way to be
         fresh = t - self._t_joint <= c.joint_stale_s
         changed = False
         for j in range(2 * self.k):
@@ -563,6 +589,7 @@ class FaultMonitor:
                 cond = fresh and self._j_resid[j] > c.joint_tolerance_rad
             if self._deb_joint[j].update(cond, t, c.joint_persist_s, c.joint_persist_s):
                 what = f"unit {j % self.k + 1} {'azimuth' if j < self.k else 'elevation'}"
+                self._stuck_count += 1 if cond else -1
                 if cond:
                     self._stuck[j] = float(self._j_meas[j])
                     self._raise(("joint", j), Fault.JOINT_STUCK, t, f"{what} at {self._stuck[j]:.2f} rad")
@@ -589,17 +616,17 @@ class FaultMonitor:
         flags active now."""
         c = self.config
         t = float(t_s)
-        if self._t_model is not None:
+        if self._models_on:
             if command is not None:  # the segment [t_model, t) under the command in force ends here
                 self._past.append((self._t_model, self._n_model, self._n_cmd, self._j_model, self._j_cmd))
             self._advance_models(t)
         if self._rpm_new:
             self._rpm_new = False
-            if self._check_jets(t):
+            if t >= self._judge_from and self._check_jets(t):
                 self._publish_health()
         if self._joint_new:  # judged on new feedback only (ATTITUDE rate): nothing to do without it
             self._joint_new = False
-            if self._check_joints(t):
+            if t >= self._judge_from and self._check_joints(t):
                 self._publish_health()
         if self._t_imu is not None and t - self._t_imu > c.imu_timeout_s + 1e-9:
             self._raise("imu_lost", Fault.IMU_LOST, t, f"none for {t - self._t_imu:.2f} s")
@@ -611,10 +638,11 @@ class FaultMonitor:
             self._next_link_check = t + c.link_check_period_s
             self._check_link(t)
         if command is not None:
-            cmd = np.asarray(command, float)
-            k = self.k
-            self._n_cmd = np.clip(cmd[:k], 0.0, c.n_max_rev_s)
-            self._j_cmd = cmd[k:3 * k].copy()
+            cmd = self._cmd = np.array(command, dtype=float)  # a copy: the caller's may change
+            if self._models_on:
+                k = self.k
+                self._n_cmd = np.minimum(np.maximum(cmd[:k], 0.0), c.n_max_rev_s)
+                self._j_cmd = cmd[k:3 * k]
             self._t_model = t
         return self.faults
 
