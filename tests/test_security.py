@@ -28,7 +28,7 @@ from conftest import free_udp_port
 from ground.commands import arm, depth_yaw, manual, set_mode, velocity
 from onboard.link import Link
 from onboard.loop import LoopConfig, OnboardLoop, WallClock
-from onboard.signing import MAX_STREAMS, NEW_STREAM_MAX_AGE, enable_signing, signing_timestamp
+from onboard.signing import MAX_STREAMS, NEW_STREAM_MAX_AGE, SigningState, enable_signing, signing_timestamp
 from onboard.vehicle import load_vehicle
 
 KEY = hashlib.sha256(b"jetloop security test").digest()
@@ -63,9 +63,10 @@ def altered(buf: bytes, index: int, value: int) -> bytes:
     b = bytearray(buf)
     b[index] = value
     end = 10 + b[1]  # header (10 bytes) + payload
-    if 0 < index % len(b) < end:
+    known = mavlink.mavlink_map.get(b[7] | b[8] << 8 | b[9] << 16)  # an unknown id has no CRC_EXTRA
+    if 0 < index % len(b) < end and known is not None and end + 2 <= len(b):
         crc = x25crc(bytes(b[1:end]))
-        crc.accumulate(bytes([mavlink.mavlink_map[b[7] | b[8] << 8 | b[9] << 16].crc_extra]))
+        crc.accumulate(bytes([known.crc_extra]))
         b[end:end + 2] = crc.crc.to_bytes(2, "little")
     return bytes(b)
 
@@ -163,6 +164,29 @@ def test_every_signing_case_over_udp_is_refused_counted_and_reported(robot):
     assert tm["sig_ok"] == n["accepted"] + n["foreign"]
     # streams with a proven signature: links 0 and 6 of the ground, and system 42's (signed, then foreign)
     assert set(robot.loop.gate.signing.streams) == {(0, 255, 190), (6, 255, 190), (0, 42, 190)}
+
+
+GOOD = packet(depth_yaw(1.0, 0.5), KEY, unix_s=1_700_000_000.0)
+
+
+def test_no_single_altered_byte_of_a_signed_command_gets_through():
+    """Every one of the 255 x len(packet) single-byte changes of a signed command (the CRC made good
+    again where it can be): the parser drops it, or the check refuses it. Most reach the check
+    (measured: 18668 of 19890 for this 78-byte packet), so the signature, not the CRC, stops them."""
+    verdicts = Counter()
+    for index in range(len(GOOD)):
+        for flip in range(1, 256):
+            mav = mavlink.MAVLink(None)
+            mav.robust_parsing = True
+            try:
+                msgs = [m for m in (mav.parse_buffer(altered(GOOD, index, GOOD[index] ^ flip)) or [])
+                        if m.get_type() != "BAD_DATA"]
+            except Exception:  # pymavlink raises on a few malformed headers: dropped at the link
+                msgs = []
+            verdicts.update(SigningState(KEY, clock=lambda: 1_700_000_000.0).check(m) or "accepted" for m in msgs)
+    assert verdicts["accepted"] == 0, verdicts
+    assert verdicts["bad_signature"] > 0.9 * 255 * len(GOOD)
+    assert SigningState(KEY, clock=lambda: 1_700_000_000.0).check(mavlink.MAVLink(None).parse_char(GOOD)) is None
 
 
 def test_a_flood_of_forged_signed_packets_changes_nothing(robot):
