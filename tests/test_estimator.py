@@ -324,3 +324,64 @@ def test_saturated_pressure_above_the_surface(vehicle):
     for _ in range(5):
         est.update_depth(0.0)
     assert abs(est.estimate.depth_m) < 0.01
+
+
+def _depth_fault(vehicle, offset_m, n_bad, first_bad=50, seconds=4.0, seed=11):
+    """Converged at 0.5 m, then `seconds` more with depth samples first_bad .. first_bad + n_bad - 1
+    (counted from the start of that stretch) reading `offset_m` more than the sensor says.
+
+    Returns (estimator, rows): one row per depth sample, (index, sample value, depth resets and
+    depth gated-rejections after it, estimated depth after it, true depth)."""
+    plant, est, u = _converged(vehicle, seed=seed)
+    rows = []
+    t, i = plant.time_s, 0
+    t_end = t + seconds
+    while t < t_end - 1e-9:
+        t += 0.01
+        s = plant.advance(t)
+        est.predict(0.01, u)
+        for imu in s.imu:
+            est.update_imu(imu)
+        for p in s.pressure:  # (at the step's IMU instant: s.truth[-1])
+            truth = s.truth[-1]
+            z = depth_from_pressure(p.press_abs_pa, vehicle) + (offset_m if first_bad <= i < first_bad + n_bad else 0.0)
+            est.update_depth(z)
+            h = est.health
+            rows.append((i, z, h.depth_resets, h.rejected_gated[STREAMS.index("depth")], est.estimate.depth_m,
+                         truth.pos_ned_m[2]))
+            i += 1
+    return est, rows
+
+
+def test_depth_jump_that_stays_reanchors_depth_after_one_second(vehicle):
+    """A depth sensor that jumps 0.4 m and stays: gated sample after sample; the sample 1 s after the
+    first gated one (depth at 50 Hz: the 51st, index first_bad + 50) re-anchors depth on the sensor,
+    is counted in depth_resets, and from there on the new readings are accepted."""
+    rate = vehicle.sensors.pressure_rate  # 50 Hz: samples 0.02 s apart
+    after = EstimatorTuning().depth_reset_after_s  # 1 s
+    n_run = round(after * rate) + 1  # the run spans 1 s at its 51st sample (50 intervals of 0.02 s)
+    est, rows = _depth_fault(vehicle, 0.4, n_bad=10_000, first_bad=50)
+    gated0 = rows[49][3]
+    reset_rows = [r for r in rows if r[2] == 1]
+    i_reset, z_reset, _, gated_at_reset, depth_at_reset, _ = reset_rows[0]
+    assert i_reset == 50 + n_run - 1  # the 51st jumped sample
+    assert gated_at_reset - gated0 == n_run  # all 51 were gated, the last one then re-anchored
+    assert depth_at_reset == pytest.approx(z_reset, abs=1e-12)  # depth := the sensor's reading
+    assert all(r[2] == 0 for r in rows if r[0] < i_reset)
+    # afterwards: accepted, one reset only, the estimate follows the (offset) sensor, not diverged
+    late = [r for r in rows if r[0] > i_reset]
+    assert late and all(r[2] == 1 and r[3] == gated_at_reset for r in late)
+    assert all(abs(r[4] - (r[5] + 0.4)) < 0.01 for r in late[10:])
+    h = est.health
+    assert not h.diverged and h.depth_resets == 1 and h.as_dict()["depth_rst"] == 1.0
+
+
+def test_depth_spike_shorter_than_one_second_is_rejected_without_reset(vehicle):
+    """50 jumped samples at 50 Hz span 0.98 s (< 1 s): all gated, no reset, the estimate stays on the truth."""
+    rate = vehicle.sensors.pressure_rate
+    n_bad = round(EstimatorTuning().depth_reset_after_s * rate)  # 50: first to last 49 x 0.02 = 0.98 s
+    est, rows = _depth_fault(vehicle, 0.4, n_bad=n_bad, first_bad=50, seconds=3.0)
+    assert rows[-1][3] - rows[49][3] == n_bad
+    assert all(r[2] == 0 for r in rows)
+    assert all(abs(r[4] - r[5]) < 0.01 for r in rows)
+    assert not est.health.diverged and est.health.depth_resets == 0
