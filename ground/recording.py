@@ -24,6 +24,8 @@ ArduSub units: SCALED_IMU / SCALED_IMU2 / RAW_IMU carry accel in mG and gyro in 
 
 from __future__ import annotations
 
+import contextlib
+import os
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -557,6 +559,36 @@ def _servo_from_tlog(a, nonmono: dict, gaps: list) -> ServoStream:
 
 
 def _read_dataflash(path: Path, data: bytes) -> Recording:
+    # DFReader (and its compiled indexer, which writes to the file descriptors themselves) prints
+    # a line for every byte it cannot frame ("bad header ..."): a damaged 8 MB log flooded the
+    # terminal with millions of lines and took minutes under a capturing caller (found by
+    # fuzzing). What it skips is counted here (skipped_bytes), so its prints go nowhere.
+    with _quiet():
+        return _read_dataflash_quietly(path, data)
+
+
+@contextlib.contextmanager
+def _quiet():
+    """stdout and stderr to /dev/null, at the file descriptors (for compiled code) and in sys."""
+    import sys
+
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with open(os.devnull, "w") as null, contextlib.redirect_stdout(null), contextlib.redirect_stderr(null):
+            os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in saved:
+            os.close(fd)
+
+
+def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
     from pymavlink import DFReader
 
     try:
