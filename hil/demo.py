@@ -261,7 +261,7 @@ def run_closed_loop(
     plant = Plant(vehicle, dt_s=0.001, seed=seed, depth_m=depth_m)
     frame_s = frame_period_s if frame_period_s is not None else 1.0 / config.control_rate_hz
     ep = HilEndpoint(vehicle, ep_link, plant, control_period_s=frame_s, lockstep=True,
-                     setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=30.0,
+                     setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=90.0,
                      history=history, on_period=on_period)
     got: dict = {}
     wall0 = time.perf_counter()

