@@ -432,7 +432,9 @@ class OnboardLoop:
         if mon is not None:
             sysid = m.get_srcSystem()
             if sysid:  # 0: a message object built in this process, never on a wire (no sequence)
-                mon.packet(sysid, m.get_srcComponent(), m.get_seq())
+                # lock-step's frame marker may overtake the data (hil.faults never delays it)
+                mon.packet(sysid, m.get_srcComponent(), m.get_seq(),
+                           not (name == "SYSTEM_TIME" and self.clock.lockstep))
         verdict = self.gate.admit(m)  # signing, foreign system, envelope, arm/mode params: counted there
         for reply in verdict.replies:  # COMMAND_ACK DENIED / STATUSTEXT "setpoint refused: ..."
             (self.ground or self.link).send(reply)

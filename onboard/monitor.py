@@ -11,9 +11,12 @@ What is detected, and from what:
 - LINK_LOSS / LINK_DUPLICATE / LINK_REORDER: MAVLink sequence numbers per (system, component)
   over the last `link_window_packets` packets of that source. A forward jump of d > 1 counts d - 1
   lost; a sequence number seen in the last 128 packets of the source is a duplicate; one that
-  goes back by at most `reorder_max_back` is a late (reordered) packet and fills one counted gap.
+  goes back by at most `reorder_max_back` is a late (reordered) packet and fills one counted gap;
+  a forward jump counts only the numbers in between not seen (a frame marker that overtook the
+  data, `ordered=False`, is no loss).
   loss = gaps / (gaps + packets); duplicate, reorder = their count / packets. Raised above
-  `loss_threshold` (5 %) / `duplicate_threshold` / `reorder_threshold` once `min_packets` were seen.
+  `loss_threshold` (5 %) / `duplicate_threshold` / `reorder_threshold` once `min_packets` were seen
+  (and `min_events` duplicates / late packets: the HIL endpoint re-sends a late frame marker as is).
 - LINK_DELAY: sample age = the newest time the loop had seen when a sensor sample arrived minus
   the sample's own time stamp. In lock-step (`absolute_age`) that is the age itself (0 on a clean
   link: a frame's samples carry the frame's time); in real time the two clocks differ by an
@@ -105,7 +108,8 @@ class MonitorConfig:
     loss_threshold: float = 0.05
     duplicate_threshold: float = 0.01
     reorder_threshold: float = 0.01
-    reorder_max_back: int = 32
+    reorder_max_back: int = 64
+    min_events: int = 10  # duplicates / late packets in the window before their ratio counts
     age_samples: int = 50
     delay_threshold_s: float = 0.05
     jitter_threshold_s: float = 0.02
@@ -149,7 +153,8 @@ class MonitorConfig:
         if not 0 < self.jet_dead_efficiency < self.jet_weak_efficiency <= 1:
             raise ValueError("MonitorConfig: expected 0 < jet_dead_efficiency < jet_weak_efficiency <= 1, got "
                              f"{self.jet_dead_efficiency!r}, {self.jet_weak_efficiency!r}")
-        for name in ("link_window_packets", "min_packets", "age_samples", "imu_frozen_samples", "depth_rejections"):
+        for name in ("link_window_packets", "min_packets", "age_samples", "imu_frozen_samples", "depth_rejections",
+                     "min_events"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"MonitorConfig.{name}: expected an integer >= 1, got {v!r}")
@@ -224,7 +229,7 @@ class _Source:
         self.last = -1
         self.seen = [-(1 << 30)] * 256  # packet index at which each sequence number was last seen
         self.count = 0
-        self.window = deque(maxlen=window)  # per packet: 0 normal, 1 dup, 2 late, or 4 * gap
+        self.window = deque(maxlen=window)  # per packet: 0 normal, 1 dup, 2 late, 3 late unordered, 4 * gap
         self.gaps = 0
         self.dups = 0
         self.reorders = 0
@@ -242,8 +247,8 @@ class _Source:
             self.dups += sign
         else:
             self.received += sign
-            if code == 2:  # a late packet: it filled one gap counted before
-                self.reorders += sign
+            if code == 2 or code == 3:  # a late packet: it filled one gap counted before
+                self.reorders += sign if code == 2 else 0
                 self.gaps -= sign
             else:
                 self.gaps += sign * (code >> 2)
@@ -349,8 +354,12 @@ class FaultMonitor:
         return out
 
     # -- link ----------------------------------------------------------------------------------
-    def packet(self, system: int, component: int, seq: int) -> None:
-        """A MAVLink packet from (system, component) with sequence number seq (0..255)."""
+    def packet(self, system: int, component: int, seq: int, ordered: bool = True) -> None:
+        """A MAVLink packet from (system, component) with sequence number seq (0..255).
+
+        `ordered=False`: a packet that may legitimately overtake or trail the others (lock-step's
+        frame marker, which hil.faults never delays): it fills its place in the sequence but
+        neither moves the order on nor counts as reordered."""
         key = (system, component)
         s = self._sources.get(key)
         if s is None:
@@ -366,14 +375,25 @@ class FaultMonitor:
             s.last = seq
             s.push(0)
             return
-        d = (seq - s.last) & 0xFF
+        last = s.last
+        d = (seq - last) & 0xFF
         if d < 128:
+            if not ordered:
+                s.push(0)  # ahead: the next ordered packet will find its number seen
+                return
+            missing = 0  # numbers in between not seen among the last 128 packets (for now)
+            if d > 1:
+                seen = s.seen
+                for q in range(last + 1, last + d):
+                    if idx - seen[q & 0xFF] >= 128:
+                        missing += 1
             s.last = seq
-            s.push(4 * (d - 1))  # d - 1 packets in between are missing (for now)
+            s.push(4 * missing)
         elif 256 - d <= self.config.reorder_max_back:
-            s.push(2)  # late (reordered)
+            s.push(2 if ordered else 3)  # late: it fills a gap counted before
         else:
-            s.last = seq  # far back: the sender restarted; resynchronise
+            if ordered:
+                s.last = seq  # far back: the sender restarted; resynchronise
             s.push(0)
 
     def sample_age(self, t_now_s: float, t_sample_s: float) -> None:
@@ -401,8 +421,10 @@ class FaultMonitor:
                 continue
             gaps = max(s.gaps, 0)  # < 0 only while a late packet's gap has left the window
             loss = max(loss, gaps / (gaps + s.received)) if s.received else loss
-            dup = max(dup, s.dups / n)
-            reo = max(reo, s.reorders / n)
+            if s.dups >= c.min_events:
+                dup = max(dup, s.dups / n)
+            if s.reorders >= c.min_events:
+                reo = max(reo, s.reorders / n)
         self.link_ratios = {"loss": loss, "duplicate": dup, "reorder": reo}
         conds = {
             Fault.LINK_LOSS: (loss > c.loss_threshold, f"{100 * loss:.0f}%"),

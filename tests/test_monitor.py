@@ -126,7 +126,8 @@ def test_loss_is_raised_within_half_a_second_and_cleared_after_it_ends():
 def test_duplicates_and_reordering_are_told_apart_from_loss():
     """From t = 1 s: every 10th packet twice (duplicate ratio 1/11 > 1 %); separately, every 20th
     packet held back behind the next one: 1 late packet per 20 (reorder ratio 5 %) and no loss,
-    since the late packet fills the gap counted before it."""
+    since the late packet fills the gap counted before it. Judged from min_events = 10 duplicates
+    (0.17 s at 60 /s) or late packets (0.33 s at 30 /s), then held 0.2 s."""
     mon = FaultMonitor(CFG)
     feed(mon, Wire(), 0.0, 3.0, lambda i, t: "dup" if t >= 1.0 and i % 10 == 0 else "ok")
     assert 1.0 < first(mon, Fault.LINK_DUPLICATE) < 1.5
@@ -134,30 +135,63 @@ def test_duplicates_and_reordering_are_told_apart_from_loss():
     assert Fault.LINK_LOSS not in mon.faults_seen and Fault.LINK_REORDER not in mon.faults_seen
     mon = FaultMonitor(CFG)
     feed(mon, Wire(), 0.0, 3.0, lambda i, t: "hold" if t >= 1.0 and i % 20 == 0 else "ok")
-    assert 1.0 < first(mon, Fault.LINK_REORDER) < 1.5
+    assert 1.0 < first(mon, Fault.LINK_REORDER) < 1.6
     assert mon.link_ratios["reorder"] == pytest.approx(1 / 20, abs=0.005)
     assert mon.link_ratios["loss"] == 0.0
     assert mon.faults_seen == Fault.LINK_REORDER
 
 
 def test_one_resent_marker_is_no_fault():
-    """The HIL endpoint re-sends a frame marker (same sequence number) when a reply is late: one
-    duplicate in 500 packets is 0.2 %, under the 1 % threshold."""
+    """The HIL endpoint re-sends a frame marker (same sequence number) when a reply is late, a few
+    times while a controller starts: fewer than min_events (10) duplicates in the window are not
+    judged, even where they are over 1 % of it (9 in the first 100 packets)."""
     mon = FaultMonitor(CFG)
-    feed(mon, Wire(), 0.0, 1.0, lambda i, t: "dup" if i == 300 else "ok")  # still in the last 500
-    assert mon.link_ratios["duplicate"] == pytest.approx(1 / 500)
+    feed(mon, Wire(), 0.0, 0.25, lambda i, t: "dup" if i % 10 == 5 and i < 90 else "ok")
+    assert mon._sources[(1, 1)].dups == 9
+    assert mon.link_ratios["duplicate"] == 0.0
     assert mon.faults_seen == Fault(0)
 
 
 def test_sender_restart_resynchronises():
+    """A forward jump of 100 numbers is 100 lost; a jump back by more than reorder_max_back (64) is a
+    sender that restarted: counted from there on, neither lost nor late."""
     mon = FaultMonitor(CFG)
-    for s in list(range(100)) + list(range(200, 256)) + list(range(0, 60)):  # jump ahead: 100 lost
+    for s in list(range(100)) + list(range(200, 256)):  # 100..199 never came
         mon.packet(1, 1, s)
     mon.tick(0.0)
-    assert mon.link_ratios["loss"] == pytest.approx(100 / (100 + 216))
-    for s in list(range(10, 200)):  # far back (> 32): a new start, not reordering nor loss
-        mon.packet(1, 2, 255 - s % 256)
-    assert mon.link_ratios["reorder"] == 0.0
+    assert mon.link_ratios["loss"] == pytest.approx(100 / (100 + 156))
+    src = mon._sources[(1, 1)]
+    for s in range(155, 200):  # back by 100 from 255: a restart
+        mon.packet(1, 1, s)
+    assert (src.gaps, src.reorders, src.dups) == (100, 0, 0)
+
+
+def test_a_frame_marker_that_overtakes_the_data_is_neither_loss_nor_reordering():
+    """Lock-step under a link delay: hil.faults holds the data back but never the frame marker, so
+    the marker (every 6th number) arrives first. Passed as unordered, it fills its place: the data
+    after it, in its own order, finds no number missing. Passed as ordered, the same stream would
+    read as loss and reordering."""
+    def stream(mon, ordered_marker):
+        held = []
+        for frame in range(200):
+            for j in range(6):
+                seq = (6 * frame + j) % 256
+                if j == 5:
+                    mon.packet(1, 1, seq, ordered=ordered_marker)  # the marker, on time
+                else:
+                    held.append(seq)  # the data, 10 frames late
+            if frame >= 10:
+                for seq in held[:5]:
+                    mon.packet(1, 1, seq)
+                held = held[5:]
+            mon.tick(frame * P)
+    mon = FaultMonitor(CFG)
+    stream(mon, ordered_marker=False)
+    assert mon.link_ratios == {"loss": 0.0, "duplicate": 0.0, "reorder": 0.0}
+    assert mon.faults_seen == Fault(0)
+    naive = FaultMonitor(CFG)
+    stream(naive, ordered_marker=True)
+    assert naive.faults_seen & (Fault.LINK_LOSS | Fault.LINK_REORDER)
 
 
 def ages(mon, t0, t1, age_of, rate_hz=200.0):
@@ -467,7 +501,7 @@ def test_loop_reports_a_frozen_imu_and_a_lossy_link(loop_pair):
         log += received(ground, 0.0)
     log += received(ground)
     texts = [m.text for m in log if m.get_type() == "STATUSTEXT"]
-    assert "FAULT LINK_LOSS 20%" in texts
+    assert [x for x in texts if "LINK_LOSS" in x][0].startswith("FAULT LINK_LOSS")
     assert [x for x in texts if "IMU_FROZEN" in x] == ["FAULT IMU_FROZEN 10 identical samples", "CLEARED IMU_FROZEN"]
     faults = [(m.value) for m in log if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == "faults"]
     assert len(faults) == 20  # every telemetry tick: 10 Hz over 2 s
@@ -484,5 +518,5 @@ def test_loop_reports_a_frozen_imu_and_a_lossy_link(loop_pair):
     assert 1900 <= sys_status[1].drop_rate_comm <= 2100
     s = loop.stats.summary()
     assert s["faults_seen"] == Fault.IMU_FROZEN | Fault.LINK_LOSS
-    assert [(f, text) for _, f, text in s["fault_events"]][:2] == [(1, "FAULT LINK_LOSS 20%"), (128, "FAULT IMU_FROZEN 10 identical samples")]
+    assert [(f, text[:15]) for _, f, text in s["fault_events"]][:2] == [(1, "FAULT LINK_LOSS"), (128, "FAULT IMU_FROZE")]
     assert loop.stats.frozen_imu > 0 and loop.stats.step_errors == 0
