@@ -195,3 +195,14 @@ def test_short_soak_misses_no_deadline_grows_no_memory_loses_no_packet(tmp_path)
     assert s["faults_recovered"] == s["faults_checked_recovered"] > 0
     assert s["missions_surfaced"] == s["missions"]
     assert soak.verdict(s, max_growth_kb_per_h=10_000) == []
+
+
+def test_cli_refuses_bad_input_with_a_message(tmp_path, capsys):
+    from ground.cli import main
+
+    assert main(["soak", "--duration", "-5", "--out", str(tmp_path)]) == 2
+    assert "--duration must be a positive number of seconds, got -5" in capsys.readouterr().err
+    assert main(["soak", "--vehicle", str(tmp_path / "missing.toml"), "--out", str(tmp_path)]) == 2
+    assert "missing.toml" in capsys.readouterr().err
+    assert main(["soak", "--duration", "30", "--out", str(tmp_path)]) == 1  # no whole mission fits
+    assert "holds no whole random mission" in capsys.readouterr().err
