@@ -584,12 +584,12 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
     }
     packets["lost"] = int(sum(abs(v) for v in unexplained.values()))
     flown = [i for i in schedule.injections if i.t_s < fly_s]  # a run stopped early flew only these
-    long_drops = sum(1 for i in flown if i.kind in TRIPS)
+    long_drops = sum(1 for i in flown if i.kind in TRIPS and i.t_s + i.length_s < fly_s)  # tripped before the end
     ends = np.asarray(monitor.end_depths_m)
     # survived and recovered: the loop drives the jets again (armed) once the fault is over
     timeline = armed_timeline(result.tlog)
     after_s = RECOVER_ARM_S + 1.0
-    back = [armed_at(timeline, i.t_s + i.length_s + after_s) for i in flown]
+    back = [armed_at(timeline, i.t_s + i.length_s + after_s) for i in flown if i.t_s + i.length_s + after_s < fly_s]
     for k in ("loss", "delay", "duplicate", "reorder"):
         w = schedule.link.get(f"{k}_window_s")
         if schedule.link.get(k if k != "delay" else "delay_s") and w[1] + after_s < fly_s:
