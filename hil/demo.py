@@ -86,10 +86,13 @@ class Mission:
 DEMO_CONFIG = LoopConfig()
 
 
-def hold_mission(duration_s: float = 20.0, depth_m: float = 0.5) -> Mission:
-    """Arm at 1 s, dive to `depth_m`, hold depth and heading: the scene for a fault scenario."""
-    return Mission(legs=(Leg(1.0, "dive", depth_m=depth_m, yaw_rad=0.0, surge_m_s=0.0, settle_s=5.0),),
-                   duration_s=duration_s)
+def hold_mission(duration_s: float = 20.0, depth_m: float = 0.5, turn_at_s: float | None = None) -> Mission:
+    """Arm at 1 s, dive to `depth_m`, hold depth and heading (from `turn_at_s`, 45 deg to
+    starboard, so the joints move): the scene for a fault scenario."""
+    legs = [Leg(1.0, "dive", depth_m=depth_m, yaw_rad=0.0, surge_m_s=0.0, settle_s=5.0)]
+    if turn_at_s is not None:
+        legs.append(Leg(turn_at_s, "turn 45", yaw_rad=math.pi / 4, settle_s=3.0))
+    return Mission(legs=tuple(legs), duration_s=duration_s)
 
 
 def reference_mission() -> Mission:
@@ -352,11 +355,19 @@ def summarise(result: ClosedLoopResult, mission: Mission, vehicle: Vehicle) -> d
         "failsafe_entries": ob.get("failsafe_entries", -1),
         "control_steps": ob.get("steps", 0),
         "lockstep_periods": result.endpoint["periods"],
+        "tilt_max_rad": _tilt_max(result.truth, mission),
         "faults_seen": ob.get("faults_seen", 0),
         "detections": result.extra.get("detections", []),
         "mission_s": mission.duration_s,
         "wall_s": result.wall_s,
     }
+
+
+def _tilt_max(truth, mission: Mission) -> float:
+    """Largest |roll| or |pitch| after the first leg's settling time (rad)."""
+    first = mission.legs[0]
+    tilt = [max(abs(s.euler_rad[0]), abs(s.euler_rad[1])) for s in truth if s.time_s >= first.t0_s + first.settle_s]
+    return float(max(tilt)) if tilt else float("nan")
 
 
 def table(summary: dict) -> str:
@@ -365,6 +376,7 @@ def table(summary: dict) -> str:
         ("", "depth max |error|", f"{summary['depth_max_abs_m'] * 100:.1f} cm"),
         ("", "yaw RMS", f"{math.degrees(summary['yaw_rms_rad']):.2f} deg"),
         ("", "surge speed RMS", f"{summary['speed_rms_m_s'] * 100:.1f} cm/s"),
+        ("", "max |roll|, |pitch|", f"{math.degrees(summary['tilt_max_rad']):.1f} deg"),
         ("allocation", "QP solve median / p99", f"{summary['qp_solve_median_us']:.0f} / {summary['qp_solve_p99_us']:.0f} us"),
         ("", "fallbacks", f"{summary['allocation_fallbacks']}"),
         ("", "mean weighted wrench error", f"{summary['allocation_weighted_error_mean']:.3f}"),
@@ -446,10 +458,11 @@ def configure(parser) -> None:
     parser.add_argument("--no-compensation", dest="compensation", action="store_const", const="off",
                         help="the same as --compensation off")
     parser.add_argument("--threads", action="store_true", help="run the parties as threads instead of processes")
-    parser.add_argument("--mission", choices=("demo", "hold"), default="demo",
-                        help="demo: the reference mission (default); hold: dive to 0.5 m and hold (fault scenarios)")
+    parser.add_argument("--mission", choices=("demo", "hold", "turn"), default="demo",
+                        help="demo: the reference mission (default); hold: dive to 0.5 m and hold; turn: the same "
+                             "and a 45 deg turn at 8 s (fault scenarios)")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
-                        help="mission length with --mission hold (default 20 s)")
+                        help="mission length with --mission hold or turn (default 20 s)")
     from hil.faults import add_fault_arguments
 
     add_fault_arguments(parser)
@@ -476,10 +489,12 @@ def run(args) -> int:
     except FaultPlanError as exc:
         print(f"jetloop demo: {exc}", file=sys.stderr)
         return 2
-    if args.duration is not None and not (args.mission == "hold" and 2.0 <= args.duration <= 3600.0):
-        print(f"jetloop demo: --duration {args.duration}: expected 2..3600 s, with --mission hold", file=sys.stderr)
+    if args.duration is not None and not (args.mission != "demo" and 2.0 <= args.duration <= 3600.0):
+        print(f"jetloop demo: --duration {args.duration}: expected 2..3600 s, with --mission hold or turn",
+              file=sys.stderr)
         return 2
-    mission = hold_mission(args.duration or 20.0) if args.mission == "hold" else reference_mission()
+    mission = (reference_mission() if args.mission == "demo" else
+               hold_mission(args.duration or 20.0, turn_at_s=8.0 if args.mission == "turn" else None))
     config = replace(DEMO_CONFIG, allocator=args.allocator, compensation=args.compensation == "on")
     say = lambda s: print(s, flush=True)  # noqa: E731
     say(f"jetloop demo: plant + onboard + recorder over 127.0.0.1, lock-step, vehicle {vehicle.name}, seed {args.seed}, "
