@@ -187,7 +187,8 @@ def test_without_the_m1z_reaction_compensation_halves_yaw_and_position_of_fast_r
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
     "not met: yaw disturbance 0.0063 rad without, 0.0074 rad with compensation (0.0065, 0.0075 "
-    "before estimator 77d1d70). Measured decomposition (same flight in-process, plant truth): the transient yaw moment is M1z 0.083 N m "
+    "before estimator 77d1d70). Measured decomposition (same flight in-process, plant truth): the "
+    "transient yaw moment is M1z 0.083 N m "
     "RMS, F1y 0.029 (opposing M1z), axial loss 0.0065, F2z 0.0001; the compensator predicts it within "
     "1.6 % RMS (corr 0.9999), so neither model nor servo-lag error. Jets are not saturated (T 3.2 of "
     "4.3 N). Both runs take the same -19 mrad kick 0.2 s after each reversal (the first 0.4 s of each "
