@@ -39,7 +39,8 @@ def _field(ftype: str, n: int):
 def hostile(name: str):
     """A strategy of NAME messages (pymavlink objects) with every field hostile."""
     cls = mavlink.mavlink_map[getattr(mavlink, f"MAVLINK_MSG_ID_{name}")]
-    fields = [_field(t, n) for t, n in zip(cls.fieldtypes, cls.array_lengths)]
+    length = dict(zip(cls.ordered_fieldnames, cls.array_lengths))  # array_lengths is in wire order
+    fields = [_field(t, length[f]) for f, t in zip(cls.fieldnames, cls.fieldtypes)]
     return st.tuples(*fields).map(lambda values: cls(*values))
 
 
