@@ -357,9 +357,10 @@ class FaultMonitor:
     def packet(self, system: int, component: int, seq: int, ordered: bool = True) -> None:
         """A MAVLink packet from (system, component) with sequence number seq (0..255).
 
-        `ordered=False`: a packet that may legitimately overtake or trail the others (lock-step's
-        frame marker, which hil.faults never delays): it fills its place in the sequence but
-        neither moves the order on nor counts as reordered."""
+        `ordered=False`: a packet that may legitimately overtake, trail or repeat the others
+        (lock-step's frame marker: hil.faults never delays it, and the HIL endpoint re-sends it as
+        is while it waits for a late controller): it fills its place in the sequence but neither
+        moves the order on nor counts as reordered or duplicated."""
         key = (system, component)
         s = self._sources.get(key)
         if s is None:
@@ -368,7 +369,8 @@ class FaultMonitor:
         s.count = idx + 1
         seq &= 0xFF
         if idx - s.seen[seq] < 128:
-            s.push(1)  # seen among this source's last 128 packets: a duplicate
+            if ordered:
+                s.push(1)  # seen among this source's last 128 packets: a duplicate
             return
         s.seen[seq] = idx
         if s.last < 0:

@@ -520,3 +520,20 @@ def test_loop_reports_a_frozen_imu_and_a_lossy_link(loop_pair):
     assert s["faults_seen"] == Fault.IMU_FROZEN | Fault.LINK_LOSS
     assert [(f, text[:15]) for _, f, text in s["fault_events"]][:2] == [(1, "FAULT LINK_LOSS"), (128, "FAULT IMU_FROZE")]
     assert loop.stats.frozen_imu > 0 and loop.stats.step_errors == 0
+
+
+def test_a_re_sent_frame_marker_is_no_duplicate():
+    """While a controller starts, the HIL endpoint re-sends its lock-step frame marker as is (same
+    sequence number) every 0.5 s: 30 copies of it, passed unordered, count as nothing; the same
+    copies of a data packet are duplicates."""
+    for ordered, dups in ((False, 0), (True, 30)):
+        mon = FaultMonitor(CFG)
+        for s in range(60):
+            mon.packet(1, 1, s)
+        for _ in range(30):
+            mon.packet(1, 1, 59, ordered=ordered)
+        for s in range(60, 120):
+            mon.packet(1, 1, s)
+        mon.tick(0.0)
+        assert mon._sources[(1, 1)].dups == dups
+        assert (mon.link_ratios["duplicate"] > CFG.duplicate_threshold) == bool(dups)  # 30 / 150 = 20 %
