@@ -72,7 +72,9 @@ class _Udp:
         try:
             self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             if ep.kind == "udpin":
-                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                if ep.port != 0:  # Linux may give a port-0 bind a port another SO_REUSEADDR socket holds:
+                    # two closed loops at once (test workers) then shared one port and stole packets
+                    self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 self.sock.bind((ep.host, ep.port))
                 self.peer = None
             else:

@@ -740,3 +740,16 @@ def test_closed_loop_imu_freeze_nan_silence_and_depth_jump_are_detected(warm, tm
                      imu_dropouts_s=((6.0, 6.5),))
     r = fly(plan, hold(7.0), tmp_path)
     assert_detected(r, plan, ["IMU_FROZEN", "IMU_NAN", "DEPTH_JUMP", "IMU_LOST"])
+
+
+def test_links_on_port_0_never_share_a_port():
+    """Two closed loops at once (two test workers) each open udpin:127.0.0.1:0 links. With
+    SO_REUSEADDR, Linux may hand a port 0 bind a port another such socket holds (a few in 500),
+    and the two loops then steal each other's packets: every closed-loop test here hung at t = 0."""
+    links = [Link("udpin:127.0.0.1:0") for _ in range(500)]
+    try:
+        ports = [link.local_address[1] for link in links]
+        assert len(set(ports)) == len(ports)
+    finally:
+        for link in links:
+            link.close()
