@@ -83,13 +83,18 @@ def message_interval(message: str | int, rate_hz: float, target_system: int = 1,
     if not math.isfinite(rate_hz):
         raise CommandError(f"rate for {message}: expected a number of Hz, got {rate_hz!r}")
     interval_us = 1e6 / rate_hz if rate_hz > 0 else (-1.0 if rate_hz == 0 else 0.0)
+    if interval_us > 2 ** 31 - 1:  # the autopilot reads it as int32 us; 1e-300 Hz did not even pack
+        raise CommandError(f"rate for {message}: {rate_hz!r} Hz is slower than one message per 2^31 us, "
+                           "the slowest MAVLink can ask")
     return mavlink.MAVLink_command_long_message(target_system, target_component,
                                                 mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
                                                 float(msg_id), float(interval_us), 0, 0, 0, 0, 0)
 
 
 def message_id(message: str | int) -> int:
-    if isinstance(message, int) or str(message).isdigit():
+    if isinstance(message, int) or (str(message).isascii() and str(message).isdigit()):
+        if not 0 <= int(message) < 2 ** 24:  # a MAVLink 2 message id has 24 bits
+            raise CommandError(f"message id {message}: expected 0..{2 ** 24 - 1}")
         return int(message)
     name = str(message).upper()
     ident = getattr(mavlink, f"MAVLINK_MSG_ID_{name}", None)

@@ -251,8 +251,8 @@ def load_vehicle(path: str | Path | None = None) -> Vehicle:
     path = Path(path) if path is not None else DEFAULT_VEHICLE
     try:
         text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise VehicleFileError(f"{path}: cannot read vehicle file: {exc.strerror or exc}") from exc
+    except (OSError, UnicodeDecodeError) as exc:  # not UTF-8 text: a clear error, not a traceback
+        raise VehicleFileError(f"{path}: cannot read vehicle file: {getattr(exc, 'strerror', None) or exc}") from exc
     return parse_vehicle(text, source=str(path))
 
 

@@ -168,8 +168,8 @@ def read_columns(path: str, numeric: tuple, text: tuple = ()) -> dict:
     p = Path(path)
     try:
         raw = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    except (OSError, UnicodeDecodeError) as exc:  # not UTF-8 text: a clear error, not a traceback
+        raise InputError(f"{path}: cannot read: {getattr(exc, 'strerror', None) or exc}") from exc
     rows = [(i + 1, r) for i, r in enumerate(csv.reader(raw.splitlines()))
             if r and not r[0].lstrip().startswith("#") and any(c.strip() for c in r)]
     if not rows:
