@@ -1,0 +1,456 @@
+"""Long coverage-guided fuzzing runs of every input path with atheris (issue 7 part 2).
+
+    pip install -e '.[fuzz]'              # atheris (libFuzzer for Python)
+    python bench/fuzz.py TARGET --runs N  # one target; prints runs, crashes, rejections, runs/s
+    python bench/fuzz.py all --runs N     # every target, one process each, then a table
+    python bench/fuzz.py memory --mb 20   # tracemalloc peak of 20 MB of garbage through a Link
+                                          # and through the .tlog / .bin readers
+
+A target takes the fuzzer's bytes and feeds one input path. An exception of the path's documented
+type (RecordingError, VehicleFileError, ...) or a counted refusal (link.bad_packets,
+loop.stats.rejected_inputs, ...) is a *rejection*; any other exception is a *crash*: counted, its
+input saved under bench/fuzz_crashes/TARGET-N.bin, and the run goes on (libFuzzer would stop at
+the first). The hypothesis tests (tests/test_fuzz_*.py) are the bounded version that CI runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import random
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+SHARED = ROOT.parent / "shared"
+CRASH_DIR = ROOT / "bench" / "fuzz_crashes"
+
+STATS = {"runs": 0, "crashes": 0, "rejections": 0, "kinds": {}}
+TEMP_FILES: list = []  # removed by report(): the run ends with os._exit, which skips atexit
+
+
+def _crash(target: str, data: bytes, exc: BaseException) -> None:
+    STATS["crashes"] += 1
+    kind = f"{type(exc).__name__} at {traceback.extract_tb(exc.__traceback__)[-1].name}"
+    STATS["kinds"][kind] = STATS["kinds"].get(kind, 0) + 1
+    if STATS["kinds"][kind] == 1:
+        CRASH_DIR.mkdir(exist_ok=True)
+        path = CRASH_DIR / f"{target}-{STATS['crashes']}.bin"
+        path.write_bytes(data)
+        print(f"CRASH {kind}: {exc!r} (input saved to {path})", flush=True)
+        traceback.print_exc(limit=-4, file=sys.stdout)
+
+
+# ------------------------------------------------------------------------------------------------
+# Building MAVLink messages from the fuzzer's bytes
+
+
+def _message(fdp, names):
+    """A message of one of `names` with every field taken from the fuzzer (any value of its type)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    name = names[fdp.ConsumeIntInRange(0, len(names) - 1)]
+    cls = mavlink.mavlink_map[getattr(mavlink, f"MAVLINK_MSG_ID_{name}")]
+    length = dict(zip(cls.ordered_fieldnames, cls.array_lengths))
+    values = []
+    for f, t in zip(cls.fieldnames, cls.fieldtypes):
+        n = length[f]
+        if t == "char":
+            values.append(fdp.ConsumeBytes(max(n, 1)))
+        elif n:
+            values.append([_scalar(fdp, t) for _ in range(n)])
+        else:
+            values.append(_scalar(fdp, t))
+    return cls(*values)
+
+
+def _scalar(fdp, t: str):
+    if t in ("float", "double"):
+        special = fdp.ConsumeIntInRange(0, 7)
+        if special < 4:
+            return (math.nan, math.inf, -math.inf, 3.4028234663852886e38)[special]
+        v = fdp.ConsumeFloat()
+        return v if t == "double" or not math.isfinite(v) or abs(v) < 3.4e38 else math.copysign(3.4e38, v)
+    bits = int("".join(c for c in t if c.isdigit()))
+    if t.startswith("u"):
+        return fdp.ConsumeIntInRange(0, 2 ** bits - 1)
+    return fdp.ConsumeIntInRange(-(2 ** (bits - 1)), 2 ** (bits - 1) - 1)
+
+
+def _packets(fdp, names, sender, count: int) -> bytes:
+    out = b""
+    for _ in range(count):
+        if fdp.remaining_bytes() < 4:
+            break
+        out += sender.pack(_message(fdp, names))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Targets: name -> (setup() -> state, one(state, data) -> rejected?: bool)
+
+
+def _link_setup():
+    from onboard.link import Link
+
+    return Link("udpin:127.0.0.1:0")
+
+
+def _link_one(lk, data: bytes) -> bool:
+    before = lk.bad_packets + lk.unknown_packets + lk.garbage_bytes
+    lk.feed(data, datagram=bool(data) and data[0] & 1)
+    lk._ready.clear()
+    pending = len(lk.mav.buf) - lk.mav.buf_index
+    if lk.bytes_in != lk.good_bytes + lk.garbage_bytes + pending:
+        raise AssertionError("link byte accounting broken")
+    return lk.bad_packets + lk.unknown_packets + lk.garbage_bytes > before
+
+
+ONBOARD_READS = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "SCALED_PRESSURE2", "SCALED_PRESSURE",
+                 "ATTITUDE", "SYSTEM_TIME", "SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL", "COMMAND_LONG",
+                 "ESC_TELEMETRY_1_TO_4", "ACTUATOR_OUTPUT_STATUS", "HEARTBEAT")
+
+
+def _onboard_setup():
+    import numpy as np
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from onboard.link import Link
+    from onboard.loop import OnboardLoop, VehicleClock, arm_command
+    from onboard.vehicle import load_vehicle
+
+    v = load_vehicle()
+    link = Link("udpin:127.0.0.1:0")
+    loop = OnboardLoop(v, link, VehicleClock(block_s=0.0))
+    senders = {s: mavlink.MAVLink(None, srcSystem=s, srcComponent=1) for s in (1, 255, 7)}
+    loop.handle(arm_command(True))
+    return {"v": v, "loop": loop, "link": link, "senders": senders, "np": np}
+
+
+class _Sender:
+    def __init__(self, mav):
+        self.mav = mav
+
+    def pack(self, msg) -> bytes:
+        b = bytes(msg.pack(self.mav))
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return b
+
+
+def _onboard_one(st, data: bytes) -> bool:
+    import atheris
+
+    fdp = atheris.FuzzedDataProvider(data)
+    loop, np, v = st["loop"], st["np"], st["v"]
+    sender = _Sender(st["senders"][(1, 255, 7)[fdp.ConsumeIntInRange(0, 2)]])
+    before = loop.stats.rejected_inputs + loop.stats.ignored_imu + loop.link.bad_packets
+    loop.link.feed(_packets(fdp, ONBOARD_READS, sender, 4), datagram=True)
+    while loop.link._ready:
+        loop.handle(loop.link._ready.popleft())
+    if loop._tick_due():
+        loop.poll()
+    c = np.asarray(loop.command, dtype=float)
+    k = v.n_units
+    if not (np.all(np.isfinite(c)) and np.all(c[:k] >= -1e-9) and np.all(c[:k] <= v.thruster.n_max + 1e-9)
+            and np.all(np.abs(c[k:]) <= v.servo.angle_limit + 1e-9)):
+        raise AssertionError(f"command outside the vehicle's limits: {c}")
+    return loop.stats.rejected_inputs + loop.stats.ignored_imu + loop.link.bad_packets > before
+
+
+GROUND_READS = ("HEARTBEAT", "ATTITUDE", "NAMED_VALUE_FLOAT", "DEBUG_FLOAT_ARRAY", "SERVO_OUTPUT_RAW",
+                "SCALED_PRESSURE2", "LOCAL_POSITION_NED", "VFR_HUD", "SYS_STATUS", "COMMAND_ACK", "STATUSTEXT")
+
+
+def _ground_setup():
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from ground.station import Station
+    from onboard.link import Link
+    from onboard.vehicle import load_vehicle
+
+    return {"station": Station(load_vehicle()), "link": Link("udpin:127.0.0.1:0"), "t": 0.0,
+            "sender": _Sender(mavlink.MAVLink(None, srcSystem=1, srcComponent=1))}
+
+
+def _ground_one(st, data: bytes) -> bool:
+    import atheris
+
+    from ground.view import render_text
+
+    fdp = atheris.FuzzedDataProvider(data)
+    station, link = st["station"], st["link"]
+    link.feed(_packets(fdp, GROUND_READS, st["sender"], 4), datagram=True)
+    events = len(station.events)
+    while link._ready:
+        st["t"] += 0.01
+        station.update(link._ready.popleft(), st["t"])
+    station.tick(st["t"])
+    render_text(station.snapshot(st["t"]))
+    return any("could not be read" in e for _, e in list(station.events)[events:])
+
+
+def _endpoint_setup():
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from hil.endpoint import HilEndpoint
+    from hil.plant import Plant
+    from onboard.link import Link
+    from onboard.vehicle import load_vehicle
+
+    v = load_vehicle()
+    eps = [HilEndpoint(v, Link("udpin:127.0.0.1:0"), Plant(v, dt_s=0.001, noise=False), actuators=a, history=False)
+           for a in ("hil", "pwm")]
+    return {"v": v, "eps": eps, "sender": _Sender(mavlink.MAVLink(None, srcSystem=1, srcComponent=1))}
+
+
+def _endpoint_one(st, data: bytes) -> bool:
+    import atheris
+    import numpy as np
+
+    fdp = atheris.FuzzedDataProvider(data)
+    ep = st["eps"][fdp.ConsumeIntInRange(0, 1)]
+    before = ep.stats.bad_commands + ep.stats.stale_replies
+    ep.link.feed(_packets(fdp, ("HIL_ACTUATOR_CONTROLS", "SERVO_OUTPUT_RAW"), st["sender"], 3), datagram=True)
+    while ep.link._ready:
+        ep._handle(ep.link._ready.popleft(), fdp.ConsumeIntInRange(0, 10 ** 6) / 100.0, record=False)
+    c = np.asarray(ep.plant.command, dtype=float)
+    if not np.all(np.isfinite(c)):
+        raise AssertionError(f"plant command not finite: {c}")
+    return ep.stats.bad_commands + ep.stats.stale_replies > before
+
+
+def _sitl_setup():
+    from hil.json_sitl import JsonSitlBackend
+    from onboard.vehicle import load_vehicle
+
+    return JsonSitlBackend(load_vehicle())
+
+
+def _sitl_one(backend, data: bytes) -> bool:
+    before = backend.bad_packets
+    reply = backend.handle(data)
+    if reply is None and backend.bad_packets != before + 1:
+        raise AssertionError("SITL frame refused but not counted")
+    return reply is None
+
+
+def _file_setup(suffix: str):
+    def setup():
+        fd, name = tempfile.mkstemp(suffix=suffix)
+        os.close(fd)
+        TEMP_FILES.append(name)
+        return Path(name)
+    return setup
+
+
+def _recording_one(path: Path, data: bytes) -> bool:
+    from ground.recording import RecordingError, read_recording
+
+    path.write_bytes(data)
+    try:
+        rec = read_recording(path)
+    except RecordingError:
+        return True
+    rec.summary()
+    s = rec.skipped
+    return bool(s.skipped_bytes or s.bad_crc_packets or s.unknown_packets or s.non_monotonic or s.bad_records)
+
+
+def _text_one(parse, error):
+    def one(_state, data: bytes) -> bool:
+        try:
+            parse(data.decode("utf-8", "replace"))
+        except error:
+            return True
+        return False
+    return one
+
+
+def _vehicle_parse(text):
+    from onboard.vehicle import parse_vehicle
+
+    return parse_vehicle(text, "fuzz.toml")
+
+
+def _commands_parse(text):
+    from hil.sim import parse_commands
+
+    return parse_commands(text, "fuzz.csv")
+
+
+def _command_line_parse(text):
+    from ground.commands import parse_command
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    mav = mavlink.MAVLink(None)
+    for m in parse_command(text):
+        m.pack(mav)
+
+
+def _errors(*names):
+    import importlib
+
+    out = []
+    for n in names:
+        mod, _, cls = n.rpartition(".")
+        out.append(getattr(importlib.import_module(mod), cls))
+    return tuple(out)
+
+
+def _seeds(target: str) -> list[bytes]:
+    """Real inputs to start from: recordings, the reference vehicle, the demo commands."""
+    from onboard.vehicle import DEFAULT_VEHICLE
+
+    if target == "tlog":
+        return [(SHARED / "data/ardusub/small.tlog").read_bytes()[:20_000]]
+    if target == "dataflash":
+        return [(SHARED / "data/ardusub/small.BIN").read_bytes()[:20_000]]
+    if target == "vehicle":
+        return [DEFAULT_VEHICLE.read_bytes()]
+    if target == "commands":
+        return [(ROOT / "onboard/data/demo_commands.csv").read_bytes()]
+    if target == "command_line":
+        return [b"depth 1.5 yaw 90", b"rate ATTITUDE 10", b"manual 100 0 500 0", b"mode guided"]
+    if target == "sitl":
+        from hil.json_sitl import pack_servo_packet
+
+        return [pack_servo_packet(400, i, [1500] * 16) for i in range(3)]
+    return []
+
+
+TARGETS = {
+    "link": (_link_setup, _link_one),
+    "onboard": (_onboard_setup, _onboard_one),
+    "ground": (_ground_setup, _ground_one),
+    "endpoint": (_endpoint_setup, _endpoint_one),
+    "sitl": (_sitl_setup, _sitl_one),
+    "tlog": (_file_setup(".tlog"), _recording_one),
+    "dataflash": (_file_setup(".bin"), _recording_one),
+    "vehicle": (lambda: None, None),
+    "commands": (lambda: None, None),
+    "command_line": (lambda: None, None),
+}
+TEXT_TARGETS = {
+    "vehicle": (_vehicle_parse, ("onboard.vehicle.VehicleFileError",)),
+    "commands": (_commands_parse, ("hil.sim.CommandsFileError",)),
+    "command_line": (_command_line_parse, ("ground.commands.CommandError",)),
+}
+
+
+def run_target(target: str, runs: int, max_len: int) -> None:
+    import atheris
+
+    setup, one = TARGETS[target]
+    if target in TEXT_TARGETS:
+        parse, errs = TEXT_TARGETS[target]
+        one = _text_one(parse, _errors(*errs))
+    state = setup()
+    t0 = time.perf_counter()
+
+    def report():
+        dt = time.perf_counter() - t0
+        line = (f"{target}: runs {STATS['runs']}  crashes {STATS['crashes']}  rejections {STATS['rejections']}  "
+                f"{STATS['runs'] / max(dt, 1e-9):.0f} runs/s  ({dt:.1f} s)")
+        print(line, flush=True)
+        for kind, n in STATS["kinds"].items():
+            print(f"  crash kind: {kind} x{n}", flush=True)
+        for name in TEMP_FILES:
+            if os.path.exists(name):
+                os.remove(name)
+
+    def test_one(data: bytes) -> None:
+        STATS["runs"] += 1
+        try:
+            STATS["rejections"] += bool(one(state, data))
+        except Exception as exc:  # a crash: count it, keep the input, fuzz on
+            _crash(target, data, exc)
+        if STATS["runs"] >= runs:  # libFuzzer ends with C exit(), which skips Python's atexit
+            report()
+            os._exit(1 if STATS["crashes"] else 0)
+
+    corpus = Path(tempfile.mkdtemp(prefix=f"fuzz-{target}-"))
+    for i, seed in enumerate(_seeds(target)):
+        (corpus / f"seed{i}").write_bytes(seed)
+    args = [sys.argv[0], str(corpus), f"-runs={runs + 100}", f"-max_len={max_len}", "-seed=1", "-print_final_stats=0"]
+    if not os.environ.get("FUZZ_VERBOSE"):  # libFuzzer's progress lines (crashes are counted here)
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+    atheris.Setup(args, test_one)
+    atheris.Fuzz()
+
+
+def memory(mb: float) -> None:
+    """tracemalloc peak and time of `mb` MB of random garbage through a Link (UDP datagrams and a
+    serial stream) and through the .tlog and .bin readers."""
+    import tracemalloc
+
+    from ground.recording import RecordingError, read_recording
+    from onboard.link import Link
+
+    n = int(mb * 1_000_000)
+    data = random.Random(0).randbytes(n)
+    for name, chunk in (("link, 60 kB datagrams", 60_000), ("link, 1 kB serial reads", 1024)):
+        with Link("udpin:127.0.0.1:0") as lk:
+            tracemalloc.start()
+            t0 = time.perf_counter()
+            for i in range(0, n, chunk):
+                lk.feed(data[i:i + chunk], datagram=chunk > 4096)
+                lk._ready.clear()
+            dt = time.perf_counter() - t0
+            _, peak = tracemalloc.get_traced_memory()
+            tracemalloc.stop()
+            print(f"{name}: {mb:g} MB garbage in {dt:.1f} s ({dt / n * 1e6:.2f} us/byte), tracemalloc peak "
+                  f"{peak / 1e6:.2f} MB, garbage_bytes {lk.garbage_bytes}, bad_packets {lk.bad_packets}, "
+                  f"packets_in {lk.packets_in}", flush=True)
+    header = (SHARED / "data/ardusub/small.BIN").read_bytes()[:2000]
+    for suffix, body in ((".tlog", data), (".bin", header + data)):
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / f"garbage{suffix}"
+            path.write_bytes(body)
+            tracemalloc.start()
+            t0 = time.perf_counter()
+            try:
+                rec = read_recording(path)
+                result = f"read, skipped_bytes {rec.skipped.skipped_bytes}"
+            except RecordingError as exc:
+                result = f"RecordingError: {str(exc)[len(str(path)) + 2:][:60]}"
+            dt = time.perf_counter() - t0
+            _, peak = tracemalloc.get_traced_memory()
+            tracemalloc.stop()
+            print(f"read_recording {suffix}: {len(body) / 1e6:g} MB garbage in {dt:.1f} s (under tracemalloc), "
+                  f"peak {peak / 1e6:.1f} MB, {result}", flush=True)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("target", choices=sorted(TARGETS) + ["all", "memory"])
+    ap.add_argument("--runs", type=int, default=10_000, help="inputs per target (libFuzzer -runs)")
+    ap.add_argument("--max-len", type=int, default=4096, help="longest input (libFuzzer -max_len)")
+    ap.add_argument("--mb", type=float, default=20.0, help="memory: megabytes of garbage")
+    args = ap.parse_args(argv)
+    if args.target == "memory":
+        memory(args.mb)
+        return 0
+    try:
+        import atheris  # noqa: F401
+    except ImportError:
+        print("atheris is not installed: pip install -e '.[fuzz]'", file=sys.stderr)
+        return 2
+    if args.target == "all":
+        for t in sorted(TARGETS):
+            max_len = 40_000 if t in ("tlog", "dataflash", "vehicle") else args.max_len
+            subprocess.run([sys.executable, __file__, t, "--runs", str(args.runs), "--max-len", str(max_len)],
+                           check=False)
+        return 0
+    run_target(args.target, args.runs, args.max_len)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
