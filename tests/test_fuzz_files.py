@@ -24,7 +24,7 @@ from hil.sim import DEMO_COMMANDS, CommandsFileError, parse_commands
 from onboard.signing import SigningError, load_key
 from onboard.vehicle import DEFAULT_VEHICLE, Vehicle, VehicleFileError, parse_vehicle, tomllib, vehicle_from_dict
 
-FUZZ = settings(max_examples=80, deadline=timedelta(seconds=10),
+FUZZ = settings(max_examples=80, deadline=timedelta(seconds=30),
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 REFERENCE_TEXT = DEFAULT_VEHICLE.read_text(encoding="utf-8")
 REFERENCE = tomllib.loads(REFERENCE_TEXT)

@@ -26,7 +26,7 @@ from test_fuzz_messages import hostile_any, pack
 
 READ = ("HEARTBEAT", "ATTITUDE", "NAMED_VALUE_FLOAT", "DEBUG_FLOAT_ARRAY", "SERVO_OUTPUT_RAW", "SCALED_PRESSURE2",
         "LOCAL_POSITION_NED", "VFR_HUD", "SYS_STATUS", "COMMAND_ACK", "STATUSTEXT")
-FUZZ = settings(max_examples=60, deadline=timedelta(seconds=10),
+FUZZ = settings(max_examples=60, deadline=timedelta(seconds=30),
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 NAMES = st.sampled_from([b"depth", b"depth_sp", b"yaw_sp", b"u_sp", b"u_est", b"alloc_err", b"alloc_fb", b"qp_us",
                          b"step_ms", b"step_p99", b"failsafe", b"armed", b"est_rej", b"in_rej", b"link_bad"])
@@ -83,7 +83,7 @@ def test_named_values_of_any_float_render(vehicle, values):
         assert (math.isnan(got) and math.isnan(last)) or got == last
 
 
-@settings(max_examples=20, deadline=timedelta(seconds=10),
+@settings(max_examples=20, deadline=timedelta(seconds=30),
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(msgs=st.lists(hostile_any(READ), min_size=1, max_size=30))
 def test_recorder_keeps_every_hostile_packet(tmp_path_factory, msgs):

@@ -26,7 +26,7 @@ from hil.plant import Plant
 from onboard.link import Link
 from test_fuzz_messages import HOSTILE_FLOATS, hostile, pack
 
-FUZZ = settings(max_examples=80, deadline=timedelta(seconds=10),
+FUZZ = settings(max_examples=80, deadline=timedelta(seconds=30),
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 
 
@@ -117,7 +117,7 @@ FRAME = st.one_of(
 )
 
 
-@settings(max_examples=40, deadline=timedelta(seconds=10),
+@settings(max_examples=40, deadline=timedelta(seconds=30),
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(frames=st.lists(FRAME, min_size=1, max_size=6))
 @example(frames=[PACKET_16.pack(MAGIC_16, 400, 0, *([1500] * 16)), PACKET_16.pack(MAGIC_16, 400, 2 ** 32 - 1, *([65535] * 16))])

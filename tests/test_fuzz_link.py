@@ -25,7 +25,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from onboard.link import Link
 
-FUZZ = settings(max_examples=100, deadline=timedelta(seconds=5),
+FUZZ = settings(max_examples=100, deadline=timedelta(seconds=30),
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 MAX_FRAME = 280  # MAVLink 2: 10 header + 255 payload + 2 CRC + 13 signature
 
@@ -155,7 +155,7 @@ def test_bit_flip_is_rejected_and_counted_and_the_next_packet_arrives(link, whic
     assert lk.bad_packets + lk.unknown_packets >= (1 if byte > 0 else 0)
 
 
-@settings(max_examples=40, deadline=timedelta(seconds=5))
+@settings(max_examples=40, deadline=timedelta(seconds=30))
 @given(datagrams=st.lists(st.binary(min_size=1, max_size=2000), min_size=1, max_size=6), seed=st.integers(0, 99))
 def test_real_udp_datagrams_of_garbage_then_a_good_packet(datagrams, seed):
     """Through real sockets: whatever datagrams come first, the good one after them arrives."""

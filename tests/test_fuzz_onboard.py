@@ -35,7 +35,7 @@ READ_FLOATS = {  # fields the codec decodes: a non-finite one must be refused
     "SCALED_PRESSURE2": ("press_abs",),  # (SCALED_PRESSURE is passed over unread once SCALED_PRESSURE2 came)
     "ATTITUDE": ("roll", "pitch", "yaw", "rollspeed", "pitchspeed", "yawspeed"),
 }
-FUZZ = settings(max_examples=15, deadline=timedelta(seconds=10),
+FUZZ = settings(max_examples=15, deadline=timedelta(seconds=60),  # a hang, not a loaded machine
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
@@ -165,7 +165,7 @@ def test_a_non_finite_reading_is_counted_and_never_fused(rigs, data, name):
     assert name not in IMU_RANK or loop._last_imu_stamp <= 0.09 + 1e-9
 
 
-@settings(max_examples=5, deadline=timedelta(seconds=20), suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=5, deadline=timedelta(seconds=30), suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2 ** 32 - 1))
 def test_garbage_between_frames_is_counted_and_the_loop_flies_on(rigs, vehicle, seed):
     """Random datagrams between well-formed frames: counted in the link's stats and in the loop's
