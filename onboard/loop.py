@@ -358,7 +358,7 @@ class OnboardLoop:
                 vehicle, imu_timeout_s=config.imu_timeout_s, absolute_age=clock.lockstep,
                 # in real time a command reaches the servos up to a period late: at the rate limit
                 # that is rate * period (0.05 rad at 5 rad/s and 100 Hz) of honest mismatch
-                joint_tolerance_rad=0.05 if clock.lockstep else 0.1))
+                joint_tolerance_rad=0.02 if clock.lockstep else 0.1))
 
     @property
     def armed(self) -> bool:

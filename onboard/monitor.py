@@ -125,7 +125,7 @@ class MonitorConfig:
     jet_persist_s: float = 0.3
     jet_republish: float = 0.05  # a weak jet's published efficiency follows its estimate by this step
     # joints
-    joint_tolerance_rad: float = 0.05
+    joint_tolerance_rad: float = 0.02  # lock-step: the model meets the plant's joints to ~4e-6 rad
     joint_persist_s: float = 0.2
     joint_stale_s: float = 0.5  # older joint feedback is no evidence
     # IMU
