@@ -305,6 +305,8 @@ def _wrap(a: float) -> float:
 _SLOT = np.array([0, 3, 6, 7, 10])
 _YAW_ROW = 9
 N_ROWS = 10
+_LINEAR_SLOTS = np.array([False, False, True, True])  # depth and attitude: h(x) linear in x
+_NO_SLOTS = np.zeros(4, dtype=bool)
 
 
 def _given(_x, value):
@@ -356,6 +358,54 @@ def _accel_rows(xr, P, full, u, p, a, H_acc, r_accel, z, hx, H, r):
         r[3 + i] = r_accel + lin * lin
         for j in range(xr.shape[0]):
             H[3 + i, j] = H_acc[i, j]
+
+
+@njit(cache=True)
+def _accel_after(xr, P, full, u, p, H, r, z, hx, before, gates, r_accel):
+    """Rewrite the accelerometer's h(x) for samples that arrived BEFORE it in the instant (slots
+    `before`): fused one after another, the accelerometer's prediction would be f_spec at x1, the
+    posterior of those samples (x1 = x + K1 y1, K1 = P H1^T S1^-1, each sample gated as in
+    `_gate_slots`), linearised there with H_acc. In the joint update at the prior x the same
+    result needs h_eff = f_spec(x1) - H_acc (x1 - x): then z - h_eff - H_acc (x_post - x) is that
+    sequential innovation (the update is linear in everything else). The second-order variance
+    term of `_accel_rows` is taken at that posterior too, P1 = P - K1 H1 P (an ATTITUDE sample
+    shrinks the roll/pitch variance it is made of). `full` is left embedding xr."""
+    y = z - hx
+    y[_YAW_ROW] = (y[_YAW_ROW] + math.pi) % (2.0 * math.pi) - math.pi
+    rows = np.empty(z.shape[0], dtype=np.int64)
+    m = 0
+    for b in range(before.shape[0]):
+        if not before[b]:
+            continue
+        lo, hi = _SLOT[b], _SLOT[b + 1]
+        d2 = _mahalanobis2(P, H[lo:hi], np.diag(r[lo:hi]), y[lo:hi])
+        if math.isfinite(d2) and d2 <= gates[b]:
+            for i in range(lo, hi):
+                rows[m] = i
+                m += 1
+    if m == 0:
+        return
+    H1 = np.empty((m, xr.shape[0]))
+    y1 = np.empty(m)
+    R1 = np.zeros((m, m))
+    for i in range(m):
+        H1[i] = H[rows[i]]
+        y1[i] = y[rows[i]]
+        R1[i, i] = r[rows[i]]
+    PHT = P @ H1.T
+    S1 = H1 @ PHT + R1
+    x1 = xr + PHT @ np.linalg.solve(S1, y1)
+    v0 = P[0, 0] - PHT[0] @ np.linalg.solve(S1, PHT[0])  # P1[0, 0], P1[1, 1]
+    v1 = P[1, 1] - PHT[1] @ np.linalg.solve(S1, PHT[1])
+    lin = 0.5 * p[P_G] * (v0 + v1)
+    f = _specific_force_at(x1, full, u, p)
+    for i in range(3):
+        s = f[i] + 0.0
+        for j in range(xr.shape[0]):
+            s -= H[3 + i, j] * (x1[j] - xr[j])
+        hx[3 + i] = s
+        r[3 + i] = r_accel + lin * lin
+    _embed(xr, full, p[P_SURF])
 
 
 @njit(cache=True)
@@ -571,6 +621,7 @@ class Estimator:
         self._depth_resets = 0
         self._present[:] = False  # slots holding a sample of this instant
         self._surface_reading = False  # a depth reading of 0 in this instant (see update_depth)
+        self._acc_after = _NO_SLOTS  # slots filled before the accelerometer's (see _accel_after)
         self._pending = False
         self._version = 0  # bumped by every change: the estimate / health objects are built once per change
         self._health_cache = (-1, None)
@@ -640,6 +691,8 @@ class Estimator:
             self._rej_nonfinite[_ACCEL] += 1
         else:
             self._claim(_ACCEL)
+            # depth / attitude samples fused before it in this instant (see _accel_after)
+            self._acc_after = self._present & _LINEAR_SLOTS
             _accel_rows(self._ekf.x, self._ekf.P, self._full, self._command, self.params, a, self._H_acc,
                         self._r_accel[0], self._zb, self._hxb, self._Hb, self._rb)
 
@@ -653,18 +706,23 @@ class Estimator:
         if not math.isfinite(z):
             self._rej_nonfinite[_DEPTH] += 1
             return
-        if z <= 0.0:
+        if z <= 0.0 and self._pending:
             # the sensor reads max(depth, 0): a 0 says something only if the estimate is below the
-            # surface, which the other samples of this instant may change: decided after them
+            # surface, which the samples before it in this instant may change: decided after them
             if self._present[_DEPTH] or self._surface_reading:
                 self._fuse_pending()
-            self._surface_reading = True
-            self._pending = True
+            else:
+                self._surface_reading = True
+                return
+        if z <= 0.0 and self._ekf.x[X_DEPTH] <= 0.0:
+            self._accepted[_DEPTH] += 1  # at or above the surface, and so is the estimate: nothing more
+            self._depth_rejected_since = None
             return
-        # h = depth, H = e_depth: a reading > 0 says the vehicle is that deep whatever the estimate
+        # h = depth, H = e_depth: a reading > 0 says the vehicle is that deep whatever the estimate;
+        # a reading of 0 with the estimate below the surface pulls it up to 0
         self._claim(_DEPTH)
         row = _SLOT[_DEPTH]
-        self._zb[row] = z
+        self._zb[row] = max(z, 0.0)
         self._hxb[row] = self._ekf.x[X_DEPTH]
 
     def update_attitude(self, sample: AttitudeSample) -> None:
@@ -717,6 +775,10 @@ class Estimator:
     def _fuse(self, present) -> None:
         """The gated update of the slots `present` (see _fuse_pending)."""
         ekf = self._ekf
+        if present[_ACCEL] and self._acc_after.any():
+            _accel_after(ekf.x, ekf.P, self._full, self._command, self.params, self._Hb, self._rb,
+                         self._zb, self._hxb, self._acc_after & present, self._slot_gates, self._r_accel[0])
+        self._acc_after = _NO_SLOTS
         if self._compiled:
             ekf.x, ekf.P, d2, ok = _gated_fuse(ekf.x, ekf.P, self._Hb, self._rb, self._zb, self._hxb,
                                                present, self._slot_gates)
