@@ -537,3 +537,35 @@ def test_a_re_sent_frame_marker_is_no_duplicate():
         mon.tick(0.0)
         assert mon._sources[(1, 1)].dups == dups
         assert (mon.link_ratios["duplicate"] > CFG.duplicate_threshold) == bool(dups)  # 30 / 150 = 20 %
+
+
+# ------------------------------------------------------------------------------------------------
+# The closed loop: detection, reconfiguration, and the vehicle still flying
+
+
+@pytest.mark.slow
+def test_closed_loop_dead_jet_is_detected_excluded_and_the_vehicle_holds_depth_and_attitude():
+    """hil.demo.run_closed_loop (lock-step over loopback UDP, the loop in its own process) with jet 2
+    dead from t = 4 s, holding 0.4 m. The monitor raises JET_DEAD (and nothing else) within 1 s;
+    from the next tick on the allocator never spins unit 2 (index 1); no limit is broken; from
+    2 s after the fault, depth stays within 5 cm of 0.4 m and roll and pitch within 3 deg."""
+    from hil.demo import run_closed_loop
+    from hil.faults import FaultPlan, JetFault
+    from onboard.loop import arm_command, depth_yaw_target
+
+    t0 = 4.0
+    r = run_closed_loop(V, [(0.5, arm_command(True)), (0.5, depth_yaw_target(0.4, 0.0))], 9.0, seed=1,
+                        faults=FaultPlan(jets=(JetFault(2, 0.0, t0),)))
+    events = [(t, f, s) for t, f, s in r.onboard["fault_events"]]
+    assert [f for _, f, _ in events] == [Fault.JET_DEAD] and events[0][2].startswith("FAULT JET_DEAD unit 2")
+    t_dead = events[0][0]
+    assert t0 < t_dead < t0 + 1.0
+    assert r.onboard["faults_seen"] == Fault.JET_DEAD
+    after = [c for t, c in r.commands if t > t_dead + 2 * P]
+    assert after and all(c[1] == 0.0 for c in after)
+    assert r.onboard["limit_violations"] == 0 and r.onboard["failsafe_entries"] == 0
+    late = [s for s in r.truth if s.time_s >= t0 + 2.0]
+    depth = np.array([s.pos_ned_m[2] for s in late])
+    assert np.max(np.abs(depth - 0.4)) < 0.05
+    euler = np.degrees(np.array([s.euler_rad for s in late]))
+    assert np.max(np.abs(euler[:, :2])) < 3.0
