@@ -38,7 +38,8 @@ def configure(parser) -> None:
     parser.add_argument("--mission", choices=("none", "demo"), default="none",
                         help="inject the demo mission's ground setpoints (arm, dive, yaw, forward, surface)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s of vehicle time")
-    parser.add_argument("--wait", type=float, default=300.0, metavar="S", help="how long to wait for a controller")
+    parser.add_argument("--wait", type=float, default=300.0, metavar="S",
+                        help="how long to wait for a controller, and in lock-step for each answer (default 300 s)")
     from hil.faults import add_fault_arguments
 
     add_fault_arguments(parser)
@@ -92,7 +93,7 @@ def run(args) -> int:
     plant = Plant(vehicle, seed=args.seed, depth_m=args.depth)
     ep = HilEndpoint(vehicle, link, plant, control_period_s=1.0 / rate, lockstep=not args.realtime,
                      actuators=args.actuators, setpoints=setpoints, tlog=tlog, seed=args.seed, history=False,
-                     faults=faults)
+                     faults=faults, give_up_s=max(args.wait, 10.0))  # a controller's first step may compile
     print(f"jetloop hil: {vehicle.name} on {conn}, {'real time' if args.realtime else 'lock-step'}, "
           f"{rate:g} Hz; waiting for a controller", flush=True)
     if not faults.empty:
