@@ -753,3 +753,26 @@ def test_links_on_port_0_never_share_a_port():
     finally:
         for link in links:
             link.close()
+
+
+def test_real_time_mode_runs_through_link_faults_markers_included():
+    """Real time follows the wall clock and applies whatever arrived: nothing is exempt there, the
+    frame marker is lost like any packet, and the endpoint never waits for an answer."""
+    link = Link("udpin:127.0.0.1:0", source_system=1, source_component=1)
+    stop, seen = threading.Event(), []
+    ctl = threading.Thread(target=_controller, args=(link.local_address[1], stop, lambda t: np.zeros(3 * K), seen))
+    ctl.start()
+    try:
+        ep = HilEndpoint(V, link, Plant(V, seed=3, depth_m=0.5), lockstep=False, seed=3,
+                         faults=FaultPlan(loss=0.3, delay_s=0.02))
+        ep.run(0.5)
+    finally:
+        stop.set()
+        ctl.join()
+        link.close()
+    inj = ep.link.stats()["injected"]
+    assert ep.stats.periods == 50 and ep.link.exempt == frozenset()
+    assert inj["out"]["lost_by_type"].get("SYSTEM_TIME", 0) > 0  # markers too
+    markers = sum(m.get_type() == "SYSTEM_TIME" for m in seen)
+    assert 0 < markers <= 50 - inj["out"]["lost_by_type"]["SYSTEM_TIME"]  # a lost one never arrives
+    assert 0 < ep.stats.commands_applied < 50  # some answers lost, the rest applied when they came
