@@ -354,7 +354,7 @@ INSTRUMENTED = ["onboard.link", "onboard.loop", "onboard.mavlink_codec", "onboar
                 "ground.view", "ground.commands", "ground.recorder", "pymavlink.DFReader"]
 
 
-def run_target(target: str, runs: int, max_len: int) -> None:
+def run_target(target: str, runs: int, max_len: int, max_time_s: float = math.inf) -> None:
     import atheris
 
     setup, one = TARGETS[target]
@@ -389,8 +389,8 @@ def run_target(target: str, runs: int, max_len: int) -> None:
             STATS["rejections"] += bool(one(state, data))
         except Exception as exc:  # a crash: count it, keep the input, fuzz on
             _crash(target, data, exc)
-        if STATS["runs"] >= runs:  # libFuzzer ends with C exit(), which skips Python's atexit
-            report()
+        if STATS["runs"] >= runs or time.perf_counter() - t0 > max_time_s:  # libFuzzer ends with C exit(),
+            report()  # which skips Python's atexit: report here
             os._exit(1 if STATS["crashes"] else 0)
 
     corpus = Path(tempfile.mkdtemp(prefix=f"fuzz-{target}-"))
@@ -453,6 +453,7 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=10_000, help="inputs per target (libFuzzer -runs)")
     ap.add_argument("--max-len", type=int, default=4096, help="longest input (libFuzzer -max_len)")
     ap.add_argument("--mb", type=float, default=20.0, help="memory: megabytes of garbage")
+    ap.add_argument("--max-time", type=float, default=math.inf, help="stop a target after this many seconds")
     args = ap.parse_args(argv)
     if args.target == "memory":
         memory(args.mb)
@@ -465,10 +466,10 @@ def main(argv=None) -> int:
     if args.target == "all":
         for t in sorted(TARGETS):
             max_len = 40_000 if t in ("tlog", "dataflash", "vehicle") else args.max_len
-            subprocess.run([sys.executable, __file__, t, "--runs", str(args.runs), "--max-len", str(max_len)],
-                           check=False)
+            subprocess.run([sys.executable, __file__, t, "--runs", str(args.runs), "--max-len", str(max_len),
+                            "--max-time", str(args.max_time)], check=False)
         return 0
-    run_target(args.target, args.runs, args.max_len)
+    run_target(args.target, args.runs, args.max_len, args.max_time)
     return 0
 
 
