@@ -130,9 +130,12 @@ def parse_command(line: str) -> list:
         if not n_min <= len(args) <= n_max:
             raise CommandError(f"{line!r}: expected {COMMAND_HELP}")
         try:
-            return [float(a) for a in args]
+            v = [float(a) for a in args]
         except ValueError:
             raise CommandError(f"{line!r}: arguments must be numbers; expected {COMMAND_HELP}") from None
+        if not all(math.isfinite(x) and abs(x) < 3.4e38 for x in v):  # MAVLink floats are float32:
+            raise CommandError(f"{line!r}: arguments must be finite float32 numbers")  # 7.7e117 did not pack
+        return v
 
     if verb in ("arm", "disarm") and not args:
         return [arm(verb == "arm")]

@@ -164,6 +164,7 @@ WORDS = st.sampled_from(["arm", "disarm", "mode", "depth", "yaw", "velocity", "m
 @given(words=st.lists(st.one_of(WORDS, st.text(max_size=8)), max_size=6))
 @example(words=["manual", "1e9", "0", "0", "0"])  # out of MANUAL_CONTROL's int16 range
 @example(words=["depth", "nan"])
+@example(words=["depth", "7" * 117])  # regression (atheris): 7.7e117 m did not pack as float32
 @example(words=["rate", "ATTITUDE", "1e-300"])  # regression: an interval of 1e306 us did not pack
 @example(words=["rate", "9" * 40, "10"])  # regression: a message id of 1e40 did not pack
 @example(words=["rate", "\u00b2", "10"])  # regression: a Unicode digit passed isdigit() and int() raised
