@@ -346,9 +346,9 @@ TEXT_TARGETS = {
 
 # Modules whose coverage guides the fuzzer. atheris' instrumentation reaches numba-compiled functions
 # imported with them (their bytecode then calls atheris and does not compile), so targets that run
-# the model or the compiled tlog scanner (onboard, endpoint, sitl, tlog, dataflash) are fuzzed by
-# mutating the seeds without coverage feedback.
-GUIDED = ("link", "ground", "vehicle", "commands", "command_line")
+# the model or the compiled tlog scanner (onboard, endpoint, sitl, ground's jet panel, tlog,
+# dataflash) are fuzzed by mutating the seeds without coverage feedback.
+GUIDED = ("link", "vehicle", "commands", "command_line")
 INSTRUMENTED = ["onboard.link", "onboard.loop", "onboard.mavlink_codec", "onboard.vehicle", "onboard.signing",
                 "onboard.failsafe", "onboard.pwm", "hil.json_sitl", "hil.endpoint", "hil.sim", "ground.station",
                 "ground.view", "ground.commands", "ground.recorder", "pymavlink.DFReader"]
