@@ -178,7 +178,8 @@ def test_without_the_m1z_reaction_compensation_halves_the_yaw_disturbance_of_fas
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
     "not met: yaw disturbance 0.0065 rad without, 0.0075 rad with compensation. Measured "
-    "decomposition (same flight in-process, plant truth): the transient yaw moment is M1z 0.083 N m RMS, F1y 0.029 (opposing M1z), axial loss 0.0065, F2z 0.0001; the compensator predicts it within "
+    "decomposition (same flight in-process, plant truth): the transient yaw moment is M1z 0.083 N m RMS, "
+    "F1y 0.029 (opposing M1z), axial loss 0.0065, F2z 0.0001; the compensator predicts it within "
     "1.6 % RMS (corr 0.9999), so neither model nor servo-lag error. Jets are not saturated (T 3.2 of "
     "4.3 N). Both runs take the same -19 mrad kick 0.2 s after each reversal (the first 0.4 s of each "
     "carry half its mean square, 4.7 of 6.5 mrad): the reaction of the azimuths turning for yaw, at the M1z mode "
