@@ -396,7 +396,8 @@ def run_target(target: str, runs: int, max_len: int, max_time_s: float = math.in
     corpus = Path(tempfile.mkdtemp(prefix=f"fuzz-{target}-"))
     for i, seed in enumerate(_seeds(target)):
         (corpus / f"seed{i}").write_bytes(seed)
-    args = [sys.argv[0], str(corpus), f"-runs={runs + 100}", f"-max_len={max_len}", "-seed=1", "-print_final_stats=0"]
+    args = [sys.argv[0], str(corpus), f"-runs={runs + 100}", f"-max_len={max_len}", "-seed=1", "-print_final_stats=0",
+            f"-artifact_prefix={corpus}/"]  # libFuzzer's slow-unit-* files stay out of the checkout
     if not os.environ.get("FUZZ_VERBOSE"):  # libFuzzer's progress lines (crashes are counted here)
         with open(os.devnull, "w") as null:
             os.dup2(null.fileno(), 2)
