@@ -1,7 +1,7 @@
 """`jetloop hil`: the plant alone, as a MAVLink sensor endpoint or as SITL JSON physics.
 
-    jetloop hil --link udpin:0.0.0.0:14560 [--lockstep | --realtime] [--out REC.tlog] [--mission demo]
-    jetloop hil --json-sitl [--link udpin:0.0.0.0:9002]        (ArduSub SITL: --model JSON:127.0.0.1)
+    jetloop hil --link udpin:127.0.0.1:14560 [--lockstep | --realtime] [--out REC.tlog] [--mission demo]
+    jetloop hil --json-sitl [--link udpin:127.0.0.1:9002]        (ArduSub SITL: --model JSON:127.0.0.1)
 
 MAVLink mode plays the autopilot's sensor side for a controller (`jetloop onboard`, or your own):
 HEARTBEAT, HIGHRES_IMU, SCALED_PRESSURE2, ATTITUDE, ESC telemetry and a SYSTEM_TIME frame marker
@@ -23,7 +23,7 @@ import time
 def configure(parser) -> None:
     parser.add_argument("--link", default=None, metavar="CONN",
                         help="udpin:HOST:PORT, udpout:HOST:PORT or /dev/ttyXXX:BAUD "
-                             "(default udpin:0.0.0.0:14560; with --json-sitl udpin:0.0.0.0:9002)")
+                             "(default udpin:127.0.0.1:14560; with --json-sitl udpin:127.0.0.1:9002)")
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--lockstep", action="store_true", help="advance only when the controller answers (default)")
     mode.add_argument("--realtime", action="store_true", help="follow the wall clock")
@@ -74,7 +74,7 @@ def run(args) -> int:
     if not rate > 0:
         print(f"jetloop hil: --rate must be > 0 Hz, got {args.rate}", file=sys.stderr)
         return 2
-    conn = args.link or "udpin:0.0.0.0:14560"
+    conn = args.link or "udpin:127.0.0.1:14560"
     try:
         link = Link(conn, source_system=1, source_component=1)
     except LinkError as exc:
@@ -134,7 +134,7 @@ def _json_sitl(args, vehicle) -> int:
               file=sys.stderr)
         return 2
     try:
-        ep = parse_connection(args.link or "udpin:0.0.0.0:9002")
+        ep = parse_connection(args.link or "udpin:127.0.0.1:9002")
     except LinkError as exc:
         print(f"jetloop hil: {exc}", file=sys.stderr)
         return 2

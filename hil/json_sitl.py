@@ -186,7 +186,7 @@ class JsonSitlBackend:
         self.last_reply = sensor_json(self.time_s, x, xdot, p.params, self.vehicle).encode()
         return self.last_reply
 
-    def serve(self, host: str = "0.0.0.0", port: int = 9002, max_frames: int | None = None,
+    def serve(self, host: str = "127.0.0.1", port: int = 9002, max_frames: int | None = None,
               idle_timeout_s: float | None = None, on_frame=None, sock=None, duration_s: float | None = None) -> None:
         """Answer SITL frames on UDP until `max_frames`, `duration_s` of physics time, or
         `idle_timeout_s` without a packet."""

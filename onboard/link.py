@@ -84,6 +84,7 @@ class _Udp:
             raise LinkError(f"link {ep.kind}:{ep.host}:{ep.port}: cannot open UDP socket: {exc.strerror or exc}") from exc
         self.sock.setblocking(False)
         self.fixed_peer = ep.kind == "udpout"
+        self.foreign_datagrams = 0  # udpout: datagrams from anyone but the peer, dropped unread
 
     @property
     def local_address(self):
@@ -107,7 +108,10 @@ class _Udp:
         except (OSError, ValueError):
             return b""
         if not self.fixed_peer:
-            self.peer = addr
+            self.peer = addr  # udpin answers whoever spoke last (as MAVProxy's udpin does)
+        elif addr != self.peer:  # udpout talks to one peer: another host's datagram is not read
+            self.foreign_datagrams += 1
+            return b""
         return data
 
     def close(self) -> None:
@@ -368,6 +372,7 @@ class Link:
             "unknown_packets": self.unknown_packets,
             "garbage_bytes": self.garbage_bytes,
             "send_failures": self.send_failures,
+            "foreign_datagrams": getattr(self._io, "foreign_datagrams", 0),
         }
 
     def close(self) -> None:

@@ -198,3 +198,31 @@ def test_udp_false_start_marker_does_not_hold_the_rest_of_the_datagram(udp_pair)
     assert [m.custom_mode for m in msgs] == [1, 2]
     assert server.garbage_bytes == 3
     assert len(server.mav.buf) - server.mav.buf_index == 0  # nothing left waiting
+
+
+def test_a_udpout_link_reads_only_its_peer_and_counts_the_rest():
+    """udpout talks to one peer: a datagram from another host (127.0.0.2 here) is dropped unread
+    and counted, so nobody but the configured peer can feed the robot MAVLink over that link."""
+    import socket
+
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    stranger.bind(("127.0.0.2", 0))
+    link = Link(f"udpout:127.0.0.1:{peer.getsockname()[1]}", source_system=1, source_component=1)
+    try:
+        packet = bytes(mavlink.MAVLink_heartbeat_message(12, 0, 0, 0, 0, 3).pack(mavlink.MAVLink(None, 255, 190)))
+        stranger.sendto(packet, link.local_address)
+        assert link.recv(0.5) is None
+        assert link.stats()["foreign_datagrams"] == 1
+        assert link.stats()["packets_in"] == 0
+        peer.sendto(packet, link.local_address)
+        m = link.recv(1.0)
+        assert m is not None and m.get_type() == "HEARTBEAT"
+        assert link.stats()["foreign_datagrams"] == 1
+    finally:
+        link.close()
+        peer.close()
+        stranger.close()
