@@ -66,6 +66,9 @@ class CommandSchedule:
 
 # --- the commands file (pure) -------------------------------------------------------------------
 
+MAX_COMMAND_TIME_S = 86_400.0  # a day of vehicle time: a row at t = 1e300 must not mean "run forever"
+
+
 def parse_commands(text: str, source: str = "<string>", channels=range(1, 13)) -> CommandSchedule:
     """Parse a commands CSV; `channels` are the PWM columns that must be present.
 
@@ -112,8 +115,9 @@ def parse_commands(text: str, source: str = "<string>", channels=range(1, 13)) -
                 raise CommandsFileError(source, line_no, f"column {name}: {v!r} is not a finite number")
             nums.append(x)
         t = nums[col_t]
-        if t < 0:
-            raise CommandsFileError(source, line_no, f"time t = {t} s: expected t >= 0")
+        if not 0 <= t <= MAX_COMMAND_TIME_S:
+            raise CommandsFileError(source, line_no, f"time t = {t} s: expected 0 <= t <= {MAX_COMMAND_TIME_S:g} s "
+                                                     f"(the simulation runs until the last row)")
         if times and t <= times[-1]:
             raise CommandsFileError(
                 source, line_no,
