@@ -128,6 +128,11 @@ class MonitorConfig:
     joint_tolerance_rad: float = 0.02  # lock-step: the model meets the plant's joints to ~4e-6 rad
     joint_persist_s: float = 0.2
     joint_stale_s: float = 0.5  # older joint feedback is no evidence
+    joint_min_samples: int = 5  # in-order feedback samples that must agree before a joint is judged
+    joint_probe_s: float = 5.0  # a stuck joint is released to the allocator this long after it was held
+    joint_probe_max_s: float = 60.0  # (doubling after each probe that finds it stuck, up to this)
+    joint_probe_window_s: float = 1.0  # a probe that shows nothing either way holds the joint again
+    max_sources: int = 16  # (system, component) streams tracked; packets of any more are only counted
     # IMU
     imu_frozen_samples: int = 10
     imu_nan_clear_s: float = 1.0
@@ -146,7 +151,8 @@ class MonitorConfig:
         for name in ("n_max_rev_s", "servo_rate_limit_rad_s", "angle_limit_rad", "imu_timeout_s",
                      "loss_threshold", "duplicate_threshold", "reorder_threshold", "delay_threshold_s",
                      "jitter_threshold_s", "jet_window_s", "jet_min_speed", "joint_tolerance_rad",
-                     "link_check_period_s", "depth_window_s"):
+                     "link_check_period_s", "depth_window_s", "joint_probe_s", "joint_probe_max_s",
+                     "joint_probe_window_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"MonitorConfig.{name}: expected a finite number > 0, got {v!r}")
@@ -154,7 +160,7 @@ class MonitorConfig:
             raise ValueError("MonitorConfig: expected 0 < jet_dead_efficiency < jet_weak_efficiency <= 1, got "
                              f"{self.jet_dead_efficiency!r}, {self.jet_weak_efficiency!r}")
         for name in ("link_window_packets", "min_packets", "age_samples", "imu_frozen_samples", "depth_rejections",
-                     "min_events"):
+                     "min_events", "joint_min_samples", "max_sources"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"MonitorConfig.{name}: expected an integer >= 1, got {v!r}")
@@ -270,7 +276,8 @@ class FaultMonitor:
         self._new: list = []  # events not yet taken by `pop_events`
         self._active: dict = {}  # instance key -> Fault, for every raised instance
         # link
-        self._sources: dict = {}
+        self._sources: dict = {}  # at most config.max_sources
+        self.untracked_packets = 0  # packets of sources beyond them
         self._deb_link = {f: _Debounce() for f in (Fault.LINK_LOSS, Fault.LINK_DUPLICATE, Fault.LINK_REORDER,
                                                     Fault.LINK_DELAY)}
         self._next_link_check = -math.inf
@@ -309,8 +316,17 @@ class FaultMonitor:
         self._j_resid = np.zeros(2 * k)
         self._t_joint = -math.inf
         self._joint_new = False
-        self._deb_joint = [_Debounce() for _ in range(2 * k)]
-        self._stuck = [math.nan] * (2 * k)
+        # evidence of a free joint being stuck: since when (sample time) its residual has been over
+        # the tolerance while it stayed within the tolerance of `_anchor`, over how many samples
+        self._j_since = np.full(2 * k, math.nan)
+        self._j_count = np.zeros(2 * k, dtype=np.int64)
+        self._anchor = np.full(2 * k, math.nan)
+        self._moved_since = np.full(2 * k, math.nan)  # a raised joint seen away from its stuck angle
+        self._stuck = [math.nan] * (2 * k)  # raised: the angle it is stuck at
+        self._held = [False] * (2 * k)  # raised and published to the allocator (False while probed)
+        self._probe_at = [math.inf] * (2 * k)
+        self._probe_every = [c.joint_probe_s] * (2 * k)
+        self._probe_end = [math.inf] * (2 * k)
         self._stuck_count = 0
         # IMU
         self._imu_last = None
@@ -364,6 +380,9 @@ class FaultMonitor:
         key = (system, component)
         s = self._sources.get(key)
         if s is None:
+            if len(self._sources) >= self.config.max_sources:
+                self.untracked_packets += 1  # a sender cycling its ids must not grow memory
+                return
             s = self._sources[key] = _Source(self.config.link_window_packets)
         idx = s.count
         s.count = idx + 1
@@ -559,18 +578,43 @@ class FaultMonitor:
             self._rpm_new = True
 
     def joints(self, t_s: float, alpha_rad, beta_rad) -> None:
-        """Measured joint angles (ACTUATOR_OUTPUT_STATUS) stamped t_s."""
+        """Measured joint angles (ACTUATOR_OUTPUT_STATUS) stamped t_s.
+
+        Only feedback newer than the newest judged counts (a reordered or repeated sample is no
+        evidence); it is compared with the model at its own time stamp. A free joint gathers
+        evidence of being stuck while its residual is over the tolerance AND it stays within the
+        tolerance of where the evidence began: a joint that lags its model because the commands
+        reach it late (link delay, loss, reordering) still moves, which restarts the evidence."""
         if self._t_model is None or not math.isfinite(t_s):
             return  # before the first command: no reference to compare with
         if not self._models_on:
             self._start_models()
             return
+        c = self.config
+        if t_s <= self._t_joint and t_s > self._t_joint - c.joint_stale_s:
+            return  # older than the newest judged (far older: the sender's clock restarted)
         snap = self._snapshot(t_s)
         meas = np.array(tuple(alpha_rad) + tuple(beta_rad), dtype=float)
-        if snap is None or meas.shape != self._j_model.shape:
-            return  # older than the models kept
+        if snap is None or meas.shape != self._j_model.shape or not np.all(np.isfinite(meas)):
+            return  # older than the models kept, or not k + k finite angles
+        tol = c.joint_tolerance_rad
+        gap = t_s - self._t_joint > c.joint_stale_s  # evidence does not bridge a feedback gap
+        resid = np.abs(meas - self._joints_at(t_s - snap[0], snap[3], snap[4]))
+        cand = resid > tol
+        going = np.isfinite(self._j_since) & ~(np.abs(meas - self._anchor) > tol)  # (NaN anchor: not going)
+        if gap:
+            going[:] = False
+        cont = cand & going
+        start = cand & ~going
+        self._j_count = np.where(cont, self._j_count + 1, np.where(start, 1, 0))
+        self._j_since = np.where(cont, self._j_since, np.where(start, t_s, math.nan))
+        self._anchor = np.where(cont, self._anchor, meas)
+        stuck = np.array(self._stuck)
+        away = np.abs(meas - stuck) > tol  # a raised joint seen away from its angle (False where free)
+        self._moved_since = np.where(away & ~gap, np.where(np.isfinite(self._moved_since), self._moved_since, t_s),
+                                     math.nan)
         self._j_meas = meas
-        self._j_resid = np.abs(meas - self._joints_at(t_s - snap[0], snap[3], snap[4]))
+        self._j_resid = resid
         self._t_joint = t_s
         self._joint_new = True
 
@@ -599,27 +643,58 @@ class FaultMonitor:
         return changed
 
     def _check_joints(self, t: float) -> bool:
+        """Raise, clear, release for a probe or hold again; True when the published health changed.
+
+        A free joint is raised once its evidence (see `joints`) has lasted `joint_persist_s` of
+        sample time over `joint_min_samples` samples: it is then held for the allocator at the
+        measured angle. A raised joint seen away from that angle for `joint_persist_s` is cleared.
+        Since the allocator holds a stuck joint still, a false alarm would never show itself: a held
+        joint is released to the allocator (`health` free, the fault still raised) `joint_probe_s`
+        after it was held; if it follows the commands it clears, if the evidence of being stuck
+        builds up again it is held again and the next probe waits twice as long."""
         c = self.config
-        if (not self._stuck_count and float(self._j_resid.max()) <= c.joint_tolerance_rad
-                and not any(d.since is not None for d in self._deb_joint)):
-            return False  # every joint where the model says, none stuck, none on its way to be
-        fresh = t - self._t_joint <= c.joint_stale_s
+        if not self._stuck_count and not np.isfinite(self._j_since).any():
+            return False  # none stuck, none on its way to be
+        tj = self._t_joint
+        fresh = t - tj <= c.joint_stale_s
+        persist = c.joint_persist_s - 1e-9
         changed = False
         for j in range(2 * self.k):
-            stuck = self._stuck[j]
-            if math.isfinite(stuck):
-                cond = not (fresh and abs(self._j_meas[j] - stuck) > c.joint_tolerance_rad)
-            else:
-                cond = fresh and self._j_resid[j] > c.joint_tolerance_rad
-            if self._deb_joint[j].update(cond, t, c.joint_persist_s, c.joint_persist_s):
-                what = f"unit {j % self.k + 1} {'azimuth' if j < self.k else 'elevation'}"
-                self._stuck_count += 1 if cond else -1
-                if cond:
+            since = self._j_since[j]
+            evidence = fresh and tj - since >= persist and self._j_count[j] >= c.joint_min_samples
+            what = f"unit {j % self.k + 1} {'azimuth' if j < self.k else 'elevation'}"
+            if not math.isfinite(self._stuck[j]):
+                if evidence:
                     self._stuck[j] = float(self._j_meas[j])
+                    self._held[j] = True
+                    self._probe_every[j] = c.joint_probe_s
+                    self._probe_at[j] = t + c.joint_probe_s
+                    self._stuck_count += 1
                     self._raise(("joint", j), Fault.JOINT_STUCK, t, f"{what} at {self._stuck[j]:.2f} rad")
-                else:
-                    self._stuck[j] = math.nan
-                    self._clear(("joint", j), t, what)
+                    changed = True
+                continue
+            moved = self._moved_since[j]
+            if fresh and tj - moved >= persist:  # (NaN: not moved)
+                self._stuck[j] = math.nan
+                self._held[j] = False
+                self._moved_since[j] = math.nan
+                self._stuck_count -= 1
+                self._clear(("joint", j), t, what)
+                changed = True
+            elif self._held[j]:
+                if t >= self._probe_at[j]:  # release it: does it follow its commands?
+                    self._held[j] = False
+                    self._probe_end[j] = t + c.joint_probe_window_s
+                    self._j_since[j] = math.nan
+                    self._j_count[j] = 0
+                    changed = True
+            elif evidence or t >= self._probe_end[j]:  # stuck after all (or no sign either way)
+                self._held[j] = True
+                if evidence:
+                    self._probe_every[j] = min(2.0 * self._probe_every[j], c.joint_probe_max_s)
+                self._probe_at[j] = t + self._probe_every[j]
+                self._j_since[j] = math.nan
+                self._j_count[j] = 0
                 changed = True
         return changed
 
@@ -627,7 +702,8 @@ class FaultMonitor:
         k = self.k
         eff = tuple(0.0 if s == "dead" else round(self.efficiency[i], 3) if s == "weak" else 1.0
                     for i, s in enumerate(self._jet_state))
-        h = UnitHealth(eff, tuple(self._stuck[:k]), tuple(self._stuck[k:]))
+        held = [a if h else math.nan for a, h in zip(self._stuck, self._held)]
+        h = UnitHealth(eff, tuple(held[:k]), tuple(held[k:]))
         if h != self.health:
             self.health = h
             self.health_version += 1
@@ -648,7 +724,7 @@ class FaultMonitor:
             self._rpm_new = False
             if t >= self._judge_from and self._check_jets(t):
                 self._publish_health()
-        if self._joint_new:  # judged on new feedback only (ATTITUDE rate): nothing to do without it
+        if self._joint_new or self._stuck_count:  # new feedback (ATTITUDE rate), or a probe due
             self._joint_new = False
             if t >= self._judge_from and self._check_joints(t):
                 self._publish_health()

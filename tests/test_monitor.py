@@ -569,3 +569,91 @@ def test_closed_loop_dead_jet_is_detected_excluded_and_the_vehicle_holds_depth_a
     assert np.max(np.abs(depth - 0.4)) < 0.05
     euler = np.degrees(np.array([s.euler_rad for s in late]))
     assert np.max(np.abs(euler[:, :2])) < 3.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Joints over a faulty link (the one-hour soak's false JOINT_STUCK)
+
+
+class FaultyLink:
+    """One direction of hil.faults' link, in lock-step ticks: each packet is lost with probability
+    `loss`, else delivered `delay_s` (+ U(0, jitter_s)) later, and with probability `reorder` held
+    back behind the next packet (delivered after it)."""
+
+    def __init__(self, rng, loss=0.0, delay_s=0.0, jitter_s=0.0, reorder=0.0):
+        self.rng, self.loss, self.delay_s, self.jitter_s, self.reorder = rng, loss, delay_s, jitter_s, reorder
+        self.pending = []  # (due time, order, payload)
+        self.behind = None
+        self.order = 0
+
+    def send(self, t, payload):
+        u = self.rng.random(4)  # loss, (duplicate), reorder, jitter: hil.faults' draws per packet
+        if u[0] < self.loss:
+            return
+        self.order += 1
+        item = (t + self.delay_s + u[3] * self.jitter_s, self.order, payload)
+        if self.behind is None and u[2] < self.reorder:
+            self.behind = item  # goes out after the next packet
+            return
+        self.pending.append(item)
+        if self.behind is not None:
+            held, self.behind = self.behind, None
+            self.pending.append((max(held[0], item[0]), self.order + 0.5, held[2]))
+
+    def receive(self, t):
+        due = sorted(p for p in self.pending if p[0] <= t + 1e-9)
+        self.pending = [p for p in self.pending if p[0] > t + 1e-9]
+        return [p[2] for p in due]
+
+
+def run_plant_over_link(mon, duration_s, seed=0, stuck_from_s=None, **link):
+    """As run_plant, but the commands reach the plant and the joint feedback reaches the monitor
+    through a FaultyLink each way: the plant holds the last command it received (a late one
+    overrides a newer one, as the HIL endpoint does), the monitor judges what arrives."""
+    rng = np.random.default_rng(seed)
+    up, down = FaultyLink(rng, **link), FaultyLink(rng, **link)
+    plant = Plant(V, dt_s=0.001, seed=seed, depth_m=0.5)
+    lay = plant.layout
+    stuck_at = None
+    for k in range(int(round(duration_s / P))):
+        t = k * P
+        s = plant.advance(t + 1e-9)
+        if stuck_from_s is not None and t >= stuck_from_s:
+            if stuck_at is None:
+                stuck_at = float(plant.state[lay.alpha][3])
+            plant.state[lay.alpha.start + 3] = stuck_at
+        for a in s.attitude:
+            down.send(t, codec.encode_joint_angles(a.time_s, plant.state[lay.alpha], plant.state[lay.beta]))
+        for m in down.receive(t):
+            mon.joints(*codec.decode_joint_angles(m, K))
+        cmd = nominal_command(t)
+        mon.tick(t, cmd)
+        up.send(t, cmd)
+        for applied in up.receive(t):
+            plant.set_command(applied)
+    return plant
+
+
+@pytest.mark.parametrize("link", [dict(reorder=0.05), dict(reorder=0.1), dict(loss=0.1),
+                                  dict(delay_s=0.08), dict(delay_s=0.08, jitter_s=0.02, reorder=0.05, loss=0.05)],
+                         ids=["reorder5", "reorder10", "loss10", "delay80ms", "all"])
+def test_a_faulty_link_raises_no_stuck_joint(link):
+    """No joint is stuck; the link reorders, loses or delays commands and feedback (the soak saw five
+    false JOINT_STUCK within 25 s at 5 % reordering, and an 80 ms delay raised one). The joints still
+    follow their commands, only late: never JOINT_STUCK."""
+    for seed in (0, 1):
+        mon = FaultMonitor(CFG)
+        run_plant_over_link(mon, 20.0, seed=seed, **link)
+        assert Fault.JOINT_STUCK not in mon.faults_seen, [e for e in mon.events]
+        assert all(math.isnan(a) for a in mon.health.stuck_alpha_rad + mon.health.stuck_beta_rad)
+
+
+def test_a_stuck_joint_is_still_raised_over_a_faulty_link():
+    """Unit 4's azimuth stops at t = 3 s while the link reorders 5 %, loses 5 % and delays 80 ms:
+    the command keeps moving it (>= 0.3 rad/s), so it is raised within 1 s, at its angle."""
+    mon = FaultMonitor(CFG)
+    plant = run_plant_over_link(mon, 5.0, stuck_from_s=3.0, reorder=0.05, loss=0.05, delay_s=0.08)
+    assert 3.0 < first(mon, Fault.JOINT_STUCK) < 4.0
+    assert mon.health.stuck_alpha_rad[3] == pytest.approx(float(plant.state[plant.layout.alpha][3]), abs=1e-6)
+    assert [s for _, _, s in mon.events] == ["FAULT JOINT_STUCK unit 4 azimuth at "
+                                             f"{mon.health.stuck_alpha_rad[3]:.2f} rad"]
