@@ -9,6 +9,7 @@ hil.faults; in arrays (`UnitHealth`, `efficiency`) they sit at index 0..k-1, as 
 
 What is detected, and from what:
 - LINK_LOSS / LINK_DUPLICATE / LINK_REORDER: MAVLink sequence numbers per (system, component)
+  (the first `max_sources` of them; packets of any others are only counted, `untracked_packets`)
   over the last `link_window_packets` packets of that source. A forward jump of d > 1 counts d - 1
   lost; a sequence number seen in the last 128 packets of the source is a duplicate; one that
   goes back by at most `reorder_max_back` is a late (reordered) packet and fills one counted gap;
@@ -34,9 +35,17 @@ What is detected, and from what:
   recovers.
 - JOINT_STUCK: the joint angle the servo should have, the spec-4 `servo_lag` model (first-order
   lag with a rate limit, `compensation.servo_motion`, exact per step) driven by the commanded
-  angles, against the measured angles of ACTUATOR_OUTPUT_STATUS. |measured - model| >
-  `joint_tolerance_rad` for `joint_persist_s` is stuck, at the measured angle; it clears when the
-  measured angle moves away from that angle by more than the tolerance (for the same time).
+  angles, against the measured angles of ACTUATOR_OUTPUT_STATUS, each compared with the model at
+  its own time stamp; feedback older than the newest judged (reordered) is not judged. Stuck:
+  |measured - model| > `joint_tolerance_rad` while the joint stays within the tolerance of where
+  that began, for `joint_persist_s` of sample time over >= `joint_min_samples` samples, at the
+  measured angle. (The model cannot know when the commands reached the servo: over a delayed,
+  lossy or reordering link a healthy joint lags its model but still moves, which restarts the
+  evidence.) It clears when the joint is seen away from that angle by more than the tolerance
+  (for the same time). The allocator holds a stuck joint still, so a false alarm would never show
+  itself: `joint_probe_s` after the raise the joint is released in `health` (the fault stays
+  raised); if it follows its commands it clears, if the evidence builds up again it is held
+  again and the next probe waits twice as long (up to `joint_probe_max_s`).
 - IMU_FROZEN: `imu_frozen_samples` consecutive IMU samples with the very same six values (real
   noise never repeats); `imu()` then answers False: the sample must not reach the estimator nor
   count as fresh for the failsafe. Clears at the first sample that differs.

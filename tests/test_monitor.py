@@ -657,3 +657,94 @@ def test_a_stuck_joint_is_still_raised_over_a_faulty_link():
     assert mon.health.stuck_alpha_rad[3] == pytest.approx(float(plant.state[plant.layout.alpha][3]), abs=1e-6)
     assert [s for _, _, s in mon.events] == ["FAULT JOINT_STUCK unit 4 azimuth at "
                                              f"{mon.health.stuck_alpha_rad[3]:.2f} rad"]
+
+
+def run_plant_allocated(mon, duration_s, stuck_window_s):
+    """As run_plant, with the allocator's answer to the published health: a joint the monitor
+    holds stuck is commanded to its stuck angle (to the monitor's model and the plant alike).
+    Unit 4's azimuth (joint 3) is stuck in the plant for t0 <= t < t1. Returns the published
+    stuck angle of joint 3 at each tick."""
+    plant = Plant(V, dt_s=0.001, seed=0, depth_m=0.5)
+    lay = plant.layout
+    t0, t1 = stuck_window_s
+    stuck_at, held = None, []
+    for k in range(int(round(duration_s / P))):
+        t = k * P
+        s = plant.advance(t + 1e-9)
+        if t0 <= t < t1:
+            if stuck_at is None:
+                stuck_at = float(plant.state[lay.alpha][3])
+            plant.state[lay.alpha.start + 3] = stuck_at
+        for a in s.attitude:
+            mon.joints(*codec.decode_joint_angles(
+                codec.encode_joint_angles(a.time_s, plant.state[lay.alpha], plant.state[lay.beta]), K))
+        cmd = nominal_command(t)
+        h = mon.health.stuck_alpha_rad[3]
+        if math.isfinite(h):
+            cmd[K + 3] = h  # the allocator holds it where it is stuck
+        mon.tick(t, cmd)
+        held.append(h)
+        plant.set_command(cmd)
+    return np.array(held)
+
+
+def test_a_false_alarm_clears_at_the_probe():
+    """Joint 3 is stuck from 3 s to 3.5 s only (a transient, as a false alarm looks to the allocator):
+    raised by 3.6 s and held at its angle, where the allocator keeps it, so nothing shows it free.
+    joint_probe_s = 5 s after the raise the monitor releases it (health free, fault still raised);
+    the command moves it away from the angle (>= 0.3 rad/s: 0.02 rad in < 0.1 s), held 0.2 s:
+    CLEARED within 0.5 s of the probe."""
+    mon = FaultMonitor(CFG)
+    held = run_plant_allocated(mon, 10.0, (3.0, 3.5))
+    t_raise, t_clear = first(mon, Fault.JOINT_STUCK), first(mon, Fault.JOINT_STUCK, "CLEARED")
+    assert 3.0 < t_raise < 3.6
+    assert t_raise + CFG.joint_probe_s < t_clear < t_raise + CFG.joint_probe_s + 0.5
+    ticks = np.arange(len(held)) * P
+    assert np.all(np.isfinite(held[(ticks > t_raise + 0.02) & (ticks < t_raise + CFG.joint_probe_s - 0.02)]))
+    assert np.all(np.isnan(held[ticks > t_raise + CFG.joint_probe_s + 0.02]))
+    assert mon.faults == Fault(0) and mon.health.nominal
+
+
+def test_a_truly_stuck_joint_is_held_again_after_each_probe():
+    """Joint 3 stuck from 3 s for good: raised by 3.6 s; released at +5 s, the evidence builds up
+    again within joint_persist_s (0.2 s) + one sample: held again within 0.4 s, no CLEARED; the
+    next probe waits 10 s (after the first probe), so by 25 s there were exactly 2 probes."""
+    mon = FaultMonitor(CFG)
+    held = run_plant_allocated(mon, 25.0, (3.0, math.inf))
+    t_raise = first(mon, Fault.JOINT_STUCK)
+    assert 3.0 < t_raise < 3.6
+    assert [s for _, _, s in mon.events] == [f"FAULT JOINT_STUCK unit 4 azimuth at {held[-1]:.2f} rad"]
+    free = np.isnan(held)
+    ticks = np.arange(len(held)) * P
+    starts = ticks[1:][free[1:] & ~free[:-1] & (ticks[1:] > t_raise)]  # probes begin
+    assert len(starts) == 2
+    assert starts[0] == pytest.approx(t_raise + 5.0, abs=0.02)
+    p1 = starts[0] + 10.0
+    assert starts[1] == pytest.approx(p1, abs=0.45)  # (10 s after the first probe was judged)
+    for s0 in starts:
+        n_free = int(np.sum(free & (ticks >= s0) & (ticks < s0 + 1.0)))
+        assert n_free * P < 0.4  # held again within 0.4 s
+    assert np.isfinite(held[-1]) and Fault.JOINT_STUCK in mon.faults
+
+
+def test_reordered_joint_feedback_is_not_judged():
+    """A sample older than the newest judged changes nothing (the model is compared at the newest)."""
+    mon = FaultMonitor(CFG)
+    run_plant(mon, 1.0)
+    t, resid = mon._t_joint, mon._j_resid.copy()
+    mon.joints(t - 0.04, [1.0] * K, [1.0] * K)  # late, and far from the model
+    assert mon._t_joint == t and np.array_equal(mon._j_resid, resid)
+
+
+def test_link_sources_are_capped():
+    """A sender cycling (system, component) ids: 16 sources are tracked (each holds 256 numbers and
+    a 500-packet window), the packets of any others are only counted."""
+    mon = FaultMonitor(CFG)
+    for i in range(1000):
+        mon.packet(1 + i % 250, i // 250, i % 256)
+    assert len(mon._sources) == CFG.max_sources == 16
+    assert mon.untracked_packets == 1000 - 16
+    mon.packet(1, 0, 1)  # a tracked source still counts
+    assert mon._sources[(1, 0)].count == 2
+    with pytest.raises(ValueError, match="max_sources: expected an integer >= 1"):
+        MonitorConfig(max_sources=0)
