@@ -516,7 +516,7 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
         "cpu_max_ms": ob["step_cpu_max_ms"], "cpu_p999_ms": ob["step_cpu_p999_ms"], "cpu_p99_ms": ob["step_cpu_p99_ms"],
         "cpu_median_ms": ob["step_cpu_median_ms"],
         "history_steps": ob["history_steps"],
-        "overruns": ob.get("overrun_log", []),  # the newest 100: (vehicle time s, wall ms, CPU ms)
+        "overruns": ob.get("overrun_log", []),  # the newest 100: (vehicle time s, wall ms, CPU ms, of it in the garbage collector ms)
     }
     # memory
     parties = list(monitor.samples[0][1])
