@@ -64,7 +64,6 @@ def test_joint_angles_refuse_nan_wrong_message_and_missing_joints():
 # --- the plan and the pure fault functions ----------------------------------------------------------
 
 from hil.faults import (  # noqa: E402
-    DRAWS_PER_PACKET,
     DepthJump,
     FaultPlan,
     FaultPlanError,

@@ -11,7 +11,6 @@ The datagram path is exercised through real UDP sockets on 127.0.0.1.
 
 from __future__ import annotations
 
-import os
 import random
 import socket
 import time

@@ -25,7 +25,7 @@ from onboard import mavlink_codec as codec
 from onboard.link import Link
 from onboard.loop import IMU_RANK, OnboardLoop, VehicleClock, arm_command
 from onboard.sensors import AttitudeSample, ImuSample, PressureSample
-from test_fuzz_messages import hostile, hostile_any, pack
+from test_fuzz_messages import hostile, hostile_any
 
 SENSORS = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU", "SCALED_PRESSURE2",
            "SCALED_PRESSURE", "ATTITUDE", "SYSTEM_TIME", "ESC_TELEMETRY_1_TO_4", "ACTUATOR_OUTPUT_STATUS")

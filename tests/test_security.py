@@ -25,7 +25,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from conftest import free_udp_port
-from ground.commands import arm, depth_yaw, manual, set_mode, velocity
+from ground.commands import depth_yaw, manual, set_mode, velocity
 from onboard.link import Link
 from onboard.loop import LoopConfig, OnboardLoop, WallClock
 from onboard.signing import MAX_STREAMS, NEW_STREAM_MAX_AGE, SigningState, enable_signing, signing_timestamp

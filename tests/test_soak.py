@@ -165,12 +165,14 @@ def test_pair_ring_holds_time_and_vector():
 def test_ring_memory_is_resident_from_the_start():
     """The whole array is written when built, so appending moves the process's memory by nothing."""
     before = soak.rss_kb()
-    r = Ring(2_000_000)  # 16 MB of float64
+    # 40 MB of float64: above glibc's largest mmap threshold (32 MB), so the array is fresh pages
+    # (a smaller one may reuse heap pages still resident from earlier tests, and RSS would not move)
+    r = Ring(5_000_000)
     after_build = soak.rss_kb()
     for x in range(200_000):
         r.append(float(x))
     after_fill = soak.rss_kb()
-    assert after_build - before >= 15_000  # resident at once (16e6 B = 15 625 kB)
+    assert after_build - before >= 38_000  # resident at once (40e6 B = 39 062 kB)
     assert after_fill - after_build < 2_000
 
 
