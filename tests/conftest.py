@@ -62,3 +62,20 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.fixture
+def loop_pair(vehicle):
+    """An onboard loop on the reference vehicle (lock-step clock) whose link talks to a ground
+    link over real loopback UDP: (loop, ground), the loop's hello already received."""
+    from onboard.link import Link
+    from onboard.loop import OnboardLoop, VehicleClock
+
+    ground = Link("udpin:127.0.0.1:0")
+    link = Link(f"udpout:127.0.0.1:{ground.local_address[1]}")
+    loop = OnboardLoop(vehicle, link, VehicleClock())
+    loop.start()
+    assert ground.recv(2.0).get_type() == "HEARTBEAT"
+    yield loop, ground
+    link.close()
+    ground.close()

@@ -263,21 +263,6 @@ from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
 from onboard.loop import IGNORE_VX, IGNORE_VY, apply_position_target, manual_axes  # noqa: E402
 
 
-@pytest.fixture
-def loop_pair():
-    from onboard.link import Link
-    from onboard.loop import OnboardLoop, VehicleClock
-
-    ground = Link("udpin:127.0.0.1:0")
-    link = Link(f"udpout:127.0.0.1:{ground.local_address[1]}")
-    loop = OnboardLoop(V, link, VehicleClock())
-    loop.start()
-    assert ground.recv(2.0).get_type() == "HEARTBEAT"
-    yield loop, ground
-    link.close()
-    ground.close()
-
-
 def test_position_target_frames_hand_computed():
     from onboard.control import Setpoint
 

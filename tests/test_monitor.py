@@ -451,21 +451,6 @@ def test_frozen_imu_trips_the_failsafe_and_refuses_arming():
 # The loop's telemetry, on a real UDP link
 
 
-@pytest.fixture
-def loop_pair():
-    from onboard.link import Link
-    from onboard.loop import OnboardLoop, VehicleClock
-
-    ground = Link("udpin:127.0.0.1:0")
-    link = Link(f"udpout:127.0.0.1:{ground.local_address[1]}")
-    loop = OnboardLoop(V, link, VehicleClock())
-    loop.start()
-    assert ground.recv(2.0).get_type() == "HEARTBEAT"
-    yield loop, ground
-    link.close()
-    ground.close()
-
-
 def received(ground, timeout_s=0.3):
     out = []
     while (m := ground.recv(timeout_s)) is not None:
