@@ -366,6 +366,10 @@ class FaultyLink:
             for _ in range(fate.copies):
                 self._order += 1
                 heapq.heappush(self._out_held, (t + fate.delay_s, self._order, packet, name))
+            if self._out_behind is not None:  # a held packet follows the one that overtook it, delayed or not
+                behind, self._out_behind = self._out_behind, None
+                self._order += 1
+                heapq.heappush(self._out_held, (t + fate.delay_s, self._order, *behind))
             return
         if fate.reorder and self._out_behind is None:
             self.out.reordered += 1
@@ -410,6 +414,10 @@ class FaultyLink:
             for _ in range(fate.copies):
                 self._order += 1
                 heapq.heappush(self._in_held, (t + fate.delay_s, self._order, m))
+            if self._in_behind is not None:  # a held packet follows the one that overtook it, delayed or not
+                self._order += 1
+                heapq.heappush(self._in_held, (t + fate.delay_s, self._order, self._in_behind))
+                self._in_behind = None
             return None
         if fate.reorder and self._in_behind is None:
             self.into.reordered += 1
@@ -424,7 +432,9 @@ class FaultyLink:
     def stats(self) -> dict:
         s = dict(self.inner.stats())
         s["injected"] = {"out": self.out.as_dict(), "in": self.into.as_dict(),
-                         "held_out": len(self._out_held), "held_in": len(self._in_held)}
+                         # not yet delivered: delayed, or waiting for the next packet to overtake it
+                         "held_out": len(self._out_held) + (self._out_behind is not None),
+                         "held_in": len(self._in_held) + (self._in_behind is not None)}
         return s
 
     def close(self) -> None:

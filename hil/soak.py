@@ -535,9 +535,7 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
     out_lost = in_lost = out_dup = held_out = held_in = 0
     if inj is not None:
         out_lost, in_lost, out_dup = inj["out"]["lost"], inj["in"]["lost"], inj["out"]["duplicated"]
-        # still held back by the injector when the run stopped (delayed, or waiting to be overtaken)
-        held_out = inj["held_out"] + int(getattr(ep.link, "_out_behind", None) is not None)
-        held_in = inj["held_in"] + int(getattr(ep.link, "_in_behind", None) is not None)
+        held_out, held_in = inj["held_out"], inj["held_in"]  # still held back when the run stopped
     sent = Counter(ep.stats.sent)
     recorded_sent = me["counts"] + gcs["counts"]
     recorded_sent.pop(MOCAP, None)

@@ -349,6 +349,38 @@ def test_incoming_delay_delivers_at_the_due_vehicle_time(pair):
     assert faulty.recv(0.0).value == 7
 
 
+
+def test_a_packet_held_for_reordering_follows_a_delayed_one(pair):
+    """Found by the hour soak: a packet held back to be overtaken waited for the next packet that
+    was NOT delayed, so at the start of a delay window it stayed held for the whole window and
+    was never delivered (one unexplained sequence gap). It must follow the packet that overtakes
+    it, into the delay too, in both directions."""
+    a, b = pair
+    clock = Clock()
+    plan = FaultPlan(reorder=1.0, reorder_window_s=(0.0, 0.01), delay_s=0.02, delay_window_s=(0.01, 1.0))
+    out = FaultyLink(a, plan, clock, seed=0)
+    with out.batch():
+        out.send(numbered(1))  # t = 0: reordered, held behind the next packet
+    clock.t = 0.01
+    with out.batch():
+        out.send(numbered(2))  # delayed to 0.03, and 1 with it, after it
+    assert drain(b, 0.1) == [] and out.stats()["injected"]["held_out"] == 2
+    clock.t = 0.03
+    with out.batch():
+        pass
+    assert [m.value for m in drain(b)] == [2, 1]
+    assert out.stats()["injected"]["held_out"] == 0
+
+    back = FaultyLink(b, plan, clock := Clock(), seed=0)
+    a.send(numbered(1))
+    assert back.recv(1.0) is None and back.stats()["injected"]["held_in"] == 1  # held behind
+    clock.t = 0.01
+    a.send(numbered(2))
+    assert back.recv(1.0) is None and back.stats()["injected"]["held_in"] == 2  # both delayed
+    clock.t = 0.03
+    assert [back.recv(0.0).value, back.recv(0.0).value] == [2, 1]
+    assert back.stats()["injected"]["held_in"] == 0
+
 # --- the endpoint with a scripted controller (real sockets, lock-step, no onboard loop) ---------------
 
 import threading  # noqa: E402
