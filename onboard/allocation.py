@@ -307,6 +307,70 @@ def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, 
 
 
 @njit(cache=True)
+def step_inputs(tau, alpha, beta, nu_r, lim, stuck_alpha, stuck_beta):
+    """(a0, b0, nu, angles finite, tau finite) of one allocation's inputs, as fresh arrays.
+
+    a0, b0: the current joint angles clipped to +-lim, a stuck joint (stuck angle finite; NaN =
+    free) replaced by its stuck angle; angles finite: the given angles were. nu: nu_r, or zeros
+    if any of it is not finite (a diverged estimate must not poison the thrust limits).
+    """
+    k = alpha.shape[0]
+    a0 = np.empty(k)
+    b0 = np.empty(k)
+    angles_ok = True
+    for i in range(k):
+        a = min(max(alpha[i], -lim), lim)
+        b = min(max(beta[i], -lim), lim)
+        angles_ok = angles_ok and math.isfinite(a) and math.isfinite(b)
+        a0[i] = stuck_alpha[i] if math.isfinite(stuck_alpha[i]) else a
+        b0[i] = stuck_beta[i] if math.isfinite(stuck_beta[i]) else b
+    nu = np.empty(6)
+    nu_ok = True
+    for i in range(6):
+        nu[i] = nu_r[i]
+        nu_ok = nu_ok and math.isfinite(nu_r[i])
+    if not nu_ok:
+        nu[:] = 0.0
+    tau_ok = True
+    for i in range(6):
+        tau_ok = tau_ok and math.isfinite(tau[i])
+    return a0, b0, nu, angles_ok, tau_ok
+
+
+@njit(cache=True)
+def all_finite(x):
+    """True if every entry of the 1-d array x is finite."""
+    for i in range(x.shape[0]):
+        if not math.isfinite(x[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def outcome(n, alpha, beta, nu_r, pos, e1, tp, tau, W, eff):
+    """`evaluate` of the command at what each unit reaches (n eff), its residual achieved - tau
+    and weighted error sqrt(res' W res) (NaN if the residual is not finite)."""
+    k = n.shape[0]
+    n_actual = np.empty(k)
+    for i in range(k):
+        n_actual[i] = n[i] * eff[i]
+    T, force, achieved = evaluate(n_actual, alpha, beta, nu_r, pos, e1, tp)
+    res = achieved - tau
+    finite = True
+    for i in range(6):
+        finite = finite and math.isfinite(res[i])
+    if not finite:
+        return T, force, achieved, res, math.nan
+    err = 0.0
+    for j in range(6):
+        v = 0.0
+        for i in range(6):
+            v += res[i] * W[i, j]
+        err += v * res[j]
+    return T, force, achieved, res, math.sqrt(err)
+
+
+@njit(cache=True)
 def command_of_forces(f, a0, b0, win, nu_r, pos, e1, tp, lim, eff):
     """(n, alpha, beta) of planned force vectors f (k x 3): exact inverse, then the limits.
 
@@ -406,6 +470,12 @@ def _frozen(a) -> np.ndarray:
     return a
 
 
+def _owned(a: np.ndarray) -> np.ndarray:
+    """A float array nobody else holds (a kernel's fresh result), made read-only without a copy."""
+    a.setflags(write=False)
+    return a
+
+
 @dataclass(frozen=True)
 class Allocation:
     """One allocation: the command, what it achieves, and the solver's diagnostics.
@@ -465,8 +535,32 @@ class _Base:
         self.dt_s = float(dt_s)
         self.config = config if config is not None else AllocationConfig.from_vehicle(v)
         self.W = self.config.weight_matrix()
-        self.previous: Allocation | None = None
+        self._zeros6 = np.zeros(6)
+        self._zeros3k = np.zeros(3 * self.k)
+        self.previous = None
         self.set_health()
+        self._warm_up_shared()
+
+    def _warm_up_shared(self) -> None:
+        """Load the compiled input and outcome kernels now, not in the first step, for the array
+        kinds a step passes (angles given by the caller, or the previous command's read-only ones)."""
+        k, g = self.k, self.geo
+        z, ro = np.zeros(k), _frozen(np.zeros(k))
+        for a in (z, ro):
+            step_inputs(self._zeros6, a, a, self._zeros6, g.angle_limit, self.stuck_alpha_rad, self.stuck_beta_rad)
+        outcome(z, z, z, self._zeros6, g.position, g.e1, g.tp, self._zeros6, self.W, np.ones(k))
+        all_finite(self._zeros6)
+
+    @property
+    def previous(self) -> Allocation | None:
+        """The last committed allocation (the change reference and the fallback), or None."""
+        return self._previous
+
+    @previous.setter
+    def previous(self, allocation: Allocation | None) -> None:
+        self._previous = allocation
+        # its force vectors, flat and writable, as the QP's change reference (copied once here)
+        self._f_prev = None if allocation is None else np.array(allocation.force_body_n, dtype=np.float64).reshape(-1)
 
     def set_health(self, efficiency=None, stuck_alpha_rad=None, stuck_beta_rad=None) -> None:
         """Tell the allocator what each unit can still do (onboard.monitor.UnitHealth's fields).
@@ -493,36 +587,37 @@ class _Base:
         self._nominal = bool(np.all(eff == 1.0) and not self._stuck_a.any() and not self._stuck_b.any())
 
     def _inputs(self, wrench, alpha, beta, nu_r):
+        """(tau, a0, b0, nu, tau finite): the demand (may be non-finite: the callers fall back),
+        the current joint angles (default: the last committed command) within the limits and at
+        any stuck angle, nu_r (zeros if absent or not finite). One compiled call (`step_inputs`)."""
         k = self.k
-        tau = _vector(wrench, 6, "wrench demand [X, Y, Z, K, M, N]")  # may be non-finite: fallback
+        tau = _vector(wrench, 6, "wrench demand [X, Y, Z, K, M, N]")
+        prev = self._previous
         if alpha is None:
-            alpha = self.previous.alpha_rad if self.previous is not None else np.zeros(k)
+            alpha = prev.alpha_rad if prev is not None else self._zeros3k[:k]
+        else:
+            alpha = _vector(alpha, k, "alpha_rad (current azimuths)")
         if beta is None:
-            beta = self.previous.beta_rad if self.previous is not None else np.zeros(k)
-        lim = self.geo.angle_limit
-        a0 = np.clip(_vector(alpha, k, "alpha_rad (current azimuths)"), -lim, lim)
-        b0 = np.clip(_vector(beta, k, "beta_rad (current elevations)"), -lim, lim)
-        nu = np.zeros(6) if nu_r is None else _vector(nu_r, 6, "nu_r (body velocity relative to the water)")
-        if not (np.all(np.isfinite(a0)) and np.all(np.isfinite(b0))):
+            beta = prev.beta_rad if prev is not None else self._zeros3k[:k]
+        else:
+            beta = _vector(beta, k, "beta_rad (current elevations)")
+        nu = self._zeros6 if nu_r is None else _vector(nu_r, 6, "nu_r (body velocity relative to the water)")
+        a0, b0, nu, angles_ok, tau_ok = step_inputs(tau, alpha, beta, nu, self.geo.angle_limit,
+                                                    self.stuck_alpha_rad, self.stuck_beta_rad)
+        if not angles_ok:
             raise ValueError("current joint angles must be finite")
-        if not self._nominal:  # a stuck joint is where it is stuck, whatever was commanded
-            a0 = np.where(self._stuck_a, self.stuck_alpha_rad, a0)
-            b0 = np.where(self._stuck_b, self.stuck_beta_rad, b0)
-        if not np.all(np.isfinite(nu)):
-            nu = np.zeros(6)  # a diverged estimate must not poison the thrust limits
-        return tau, a0, b0, nu
+        return tau, a0, b0, nu, tau_ok
 
     def _finish(self, tau, n, alpha, beta, nu, status, solve_time, iters, fallback, t_max, qp_time=0.0):
-        """Exact forward model of the final command: thrust at its own inflow, achieved wrench."""
+        """Exact forward model of the final command: thrust at its own inflow (what a weak unit
+        reaches: n eff), achieved wrench, residual and weighted error (`outcome`, one compiled call)."""
         g = self.geo
-        n_actual = n if self._nominal else n * self.efficiency  # what a weak unit reaches
-        T, force, achieved = evaluate(n_actual, alpha, beta, nu, g.position, g.e1, g.tp)
-        res = achieved - tau
-        err = float(np.sqrt(res @ self.W @ res)) if np.all(np.isfinite(res)) else float("nan")
+        T, force, achieved, res, err = outcome(n, alpha, beta, nu, g.position, g.e1, g.tp, tau, self.W,
+                                               self.efficiency)
         return Allocation(
-            n_rev_s=_frozen(n), alpha_rad=_frozen(alpha), beta_rad=_frozen(beta), thrust_n=_frozen(T),
-            force_body_n=_frozen(force), wrench_demand=_frozen(tau), wrench_achieved=_frozen(achieved),
-            residual_wrench=_frozen(res), weighted_error=err, status=status, solve_time_s=float(solve_time),
+            n_rev_s=_frozen(n), alpha_rad=_frozen(alpha), beta_rad=_frozen(beta), thrust_n=_owned(T),
+            force_body_n=_owned(force), wrench_demand=_frozen(tau), wrench_achieved=_owned(achieved),
+            residual_wrench=_owned(res), weighted_error=float(err), status=status, solve_time_s=float(solve_time),
             qp_time_s=float(qp_time), iterations=int(iters), fallback=bool(fallback), thrust_max_n=_frozen(t_max),
         )
 
@@ -548,12 +643,12 @@ class PseudoInverseAllocator(_Base):
 
     def allocate(self, wrench, alpha=None, beta=None, nu_r=None, commit: bool = True) -> Allocation:
         t0 = time.perf_counter()
-        tau, a0, b0, nu = self._inputs(wrench, alpha, beta, nu_r)
+        tau, a0, b0, nu, finite = self._inputs(wrench, alpha, beta, nu_r)
         g = self.geo
         Va = g.axial_inflow(nu, a0, b0)
         eff = self.efficiency
         t_max = g.thrust_max(Va, eff)
-        if np.all(np.isfinite(tau)):
+        if finite:
             E = g.effectiveness(a0, b0)
             E[:, eff <= 0.0] = 0.0  # a dead unit's column: pinv gives it nothing
             T = np.clip(np.linalg.pinv(E) @ tau, 0.0, t_max)
@@ -632,6 +727,12 @@ class QpAllocator(_Base):
             adaptive_rho=True, adaptive_rho_interval=25,
         )
         self.setups = 1  # the workspace is built once here and only updated afterwards
+        # The compiled workspace, called directly where the osqp wrapper exposes it (osqp 1.x): the
+        # wrapper's bookkeeping (bound clipping, derivative cache, a result namespace) costs more
+        # than this problem's solve.
+        inner = getattr(self._solver, "_solver", None)
+        ok = inner is not None and all(hasattr(inner, a) for a in ("update_data_vec", "update_data_mat", "solution"))
+        self._inner = inner if ok else None
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -665,22 +766,21 @@ class QpAllocator(_Base):
 
     def allocate(self, wrench, alpha=None, beta=None, nu_r=None, commit: bool = True) -> Allocation:
         t_start = time.perf_counter()
-        tau, a0, b0, nu = self._inputs(wrench, alpha, beta, nu_r)
+        tau, a0, b0, nu, finite = self._inputs(wrench, alpha, beta, nu_r)
         g = self.geo
-        f_prev = self._previous_force()
-        with_change = self.previous is not None
-        finite = bool(np.all(np.isfinite(tau)))
-        t_max, win = plan_step(tau if finite else np.zeros(6), a0, b0, nu, g.position, g.e1, g.tp,
-                               g.angle_limit, self.window_step_rad(), self._BtW,
-                               self._wc if with_change else 0.0, f_prev,
-                               self._q, self._l, self._u, self._ax, self._inf, self.efficiency, self._free)
+        with_change = self._previous is not None
+        f_prev = self._f_prev if with_change else self._zeros3k
+        t_max, win = plan_step(
+            tau if finite else self._zeros6, a0, b0, nu, g.position, g.e1, g.tp, g.angle_limit,
+            self.window_step_rad(), self._BtW, self._wc if with_change else 0.0, f_prev,
+            self._q, self._l, self._u, self._ax, self._inf, self.efficiency, self._free)
         if not finite:
             return self._fallback(tau, a0, b0, nu, "non-finite demand", 0.0, 0, t_max, commit)
         x, info = self._update_and_solve(with_change)
         elapsed = time.perf_counter() - t_start
         status = str(info.status)
         ok = info.status_val in _SOLVED
-        if not ok or elapsed > self.config.time_budget_s or x is None or not np.all(np.isfinite(x)):
+        if not ok or elapsed > self.config.time_budget_s or x is None or not all_finite(x):
             reason = status if not ok else (
                 f"over time budget ({elapsed * 1e6:.0f} us > {self.config.time_budget_s * 1e6:.0f} us)")
             return self._fallback(tau, a0, b0, nu, reason, elapsed, info.iter, t_max, commit)
@@ -696,16 +796,19 @@ class QpAllocator(_Base):
     def _update_and_solve(self, with_change: bool):
         """Refill q, l, u and A's values, solve from the previous solution -> (x, info).
 
-        The compiled workspace is called directly where the osqp wrapper exposes it (osqp 1.x):
-        the wrapper's bookkeeping (bound clipping, derivative cache, a result namespace) costs
-        more than this problem's solve. Bounds are already within +-OSQP_INFTY (plan_step).
+        Everything is handed over every call, a re-plan of the same step (only the demand, so
+        only q, changed) included: OSQP re-scales the problem data (Ruiz equilibration and the cost
+        scale, which depends on q) when A or P is updated, and a q-only update would keep the
+        previous scaling, so the warm-started iterations (and within eps the solution) would differ
+        from a fresh update's. The compiled workspace is called directly (`_inner`).
+        Bounds are already within +-OSQP_INFTY (plan_step).
         """
         Px = None
         if with_change != self._P_with_change:  # only at the first step after a (re)start
             Px = self._Px[with_change]
             self._P_with_change = with_change
-        inner = getattr(self._solver, "_solver", None)
-        if inner is not None and all(hasattr(inner, a) for a in ("update_data_vec", "update_data_mat", "solution")):
+        inner = self._inner
+        if inner is not None:
             inner.update_data_vec(q=self._q, l=self._l, u=self._u)
             inner.update_data_mat(P_x=Px, P_i=None, A_x=self._ax, A_i=None)
             inner.solve()
@@ -715,11 +818,6 @@ class QpAllocator(_Base):
         self._solver.update(q=self._q, l=self._l, u=self._u, Ax=self._ax)  # pragma: no cover
         res = self._solver.solve(raise_error=False)  # pragma: no cover - other osqp versions
         return res.x, res.info
-
-    def _previous_force(self):
-        if self.previous is None:
-            return np.zeros(3 * self.k)
-        return np.array(self.previous.force_body_n, dtype=np.float64).reshape(-1)  # writable copy
 
     def _fallback(self, tau, a0, b0, nu, reason, elapsed, iters, t_max, commit):
         """Keep the previous command (clipped to this step's joint window), or jets off if none."""
