@@ -347,6 +347,13 @@ def allocate_compensated(allocator, compensator: TransientCompensator, wrench_de
     rows at 0.3, ends in rate-limit chatter even from the free response alone; the axial losses
     in full (made up by thrust, no turning needed) plus half the lateral forces without their yaw
     moment settle. The rest is left to the controller as a disturbance.
+
+    That yaw rest is a limit of the actuators, not of this compensator: in the linearised yaw loop
+    the best correction of the commanded yaw moment within the azimuths' rate limit, with a
+    perfect model and the demand's future known, takes a third off a reversal's reaction yaw, and
+    thrust at fixed joint angles has no yaw to give in a yaw turn (heave 8 N per N m of yaw); only
+    preview of the setpoint (~0.2 s) would cancel it (tests/test_compensation.py, the two tests
+    after the open-loop planning study).
     """
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)):
         raise ValueError(f"iterations: expected an integer >= 0 (re-plans per step), got {iterations!r}")

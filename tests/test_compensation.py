@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from onboard import model
-from onboard.allocation import AllocationConfig, QpAllocator
+from onboard.allocation import AllocationConfig, JetGeometry, QpAllocator
 from onboard.compensation import (
     TransientCompensator,
     allocate_compensated,
@@ -368,3 +368,143 @@ def test_a_planned_azimuth_trajectory_could_cut_the_reaction_yaw_error_but_a_rea
     late = np.abs(np.diff(cmd[50:]))
     assert late.max() > 0.9 * step  # still slewing at the rate limit half a second on: chatter
     assert float(np.sqrt(np.mean((angle @ (G @ react - N_target)) ** 2))) > 2 * rms_naive  # worse than none
+
+
+def test_in_closed_loop_only_preview_could_halve_the_reaction_yaw_of_a_reversal(vehicle):
+    """Why no per-step compensation meets the closed-loop yaw criterion of fast re-vectoring
+    (tests/test_closed_loop.py, strict xfail), where the open-loop study above looked hopeful.
+
+    Linearised yaw channel of the re-vectoring test, discrete at 10 ms. The controller's reference
+    prefilter (onboard.control: psi_r'' = w_r^2 (psi_sp - psi_r) - 2 w_r psi_r', |psi_r'| <= 0.8)
+    turns a 90 deg setpoint step into the feedforward N0 = I_z psi_r'' + d_r psi_r' (a 0.17 N m step
+    at the reversal, then smooth). The jets make the commanded moment through the servo lag S
+    (30 ms) and the seed-004 rows: D = azimuth_yaw_map / L (D(0) = 1); the commanded moment moves
+    at most 4 T L rate_limit dt per step (T = 2.8 N per jet, as in the flight). The controller
+    (eq. 1: a = w^2 e + 2 z w e' + w^3/10 int e, times I_z) turns a moment error m into the yaw
+    error W m, W(s) = s / (I_z (s^3 + 2 z w s^2 + w^2 s + w^3 / 10) + d_r s^2). Plain:
+    e = W S (D - 1) N0. An additive correction c of the commanded moment gives
+    e = W S ((D - 1) N0 + D c). The best c, by bounded least squares (the rate bound on N0 + c),
+    with a perfect model and the whole future of N0 known:
+    - causal (c = 0 before the reversal: the setpoint is not known earlier): 4.7 -> 3.2 mrad RMS
+      over the 1.5 s after it, a third off, not half; at the jets' full thrust (4.31 N, 1.54 times
+      the slew) still 2.6 mrad. (Measured in this model: 2.4 at 5.6 N, 1.9 at 11.2 N.)
+    - with 0.2 s of preview (c may start before the reversal): 0.4 mrad.
+    The reaction of the azimuths turning for the step has to be anticipated (the anti-causal part
+    of the inverse of a map with right-half-plane zeros), and the 0.17 N m step already uses the
+    azimuths' whole rate for ~3 steps. Thrust at fixed joint angles cannot stand in (next test).
+    So no compensator that sees only the current demand can halve it; a mission-aware planner
+    with the setpoint ~0.2 s ahead could.
+    """
+    from scipy.linalg import toeplitz
+    from scipy.optimize import lsq_linear
+    from scipy.signal import cont2discrete, tf2ss
+
+    from onboard.control import Gains
+
+    gains = Gains()
+    w, z, w_r, r_max = (gains.yaw_bandwidth_rad_s, gains.damping_ratio, gains.yaw_reference_rad_s,
+                        gains.max_yaw_rate_rad_s)
+    izz = vehicle.body.inertia[2] + vehicle.hydro.added_mass[5]  # 0.077 kg m^2
+    d_r = vehicle.hydro.linear_damping[5]
+    u = vehicle.units[0]
+    L = u.position[0] * u.neutral[0] + u.position[1] * u.neutral[1]  # 0.11 m
+    T, dt, n, lead = 2.8, DT, 170, 20  # reversal at step `lead` (0.2 s), 1.5 s after it
+    # feedforward of the reference prefilter for a 90 deg step at step `lead`
+    psi_r = psid_r = 0.0
+    N0 = np.zeros(n)
+    for k in range(lead, n):
+        acc = w_r * w_r * (np.pi / 2 - psi_r) - 2.0 * w_r * psid_r
+        new = min(max(psid_r + acc * dt, -r_max), r_max)
+        acc, psid_r = (new - psid_r) / dt, new
+        psi_r += psid_r * dt
+        N0[k] = izz * acc + d_r * psid_r
+    assert N0[lead] == pytest.approx(izz * w_r ** 2 * np.pi / 2, rel=0.05)  # the 0.17 N m step
+
+    def series(*tfs):
+        """(A, B, C, D) of the tfs in series, each realised on its own (a product of the
+        polynomials is too badly conditioned for the 10th-order W S D)."""
+        A, B, C, D = np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), np.eye(1)
+        for num_s, den_s in tfs:
+            a, b_, c, d = tf2ss(num_s, den_s)
+            m, k = A.shape[0], a.shape[0]
+            A = np.block([[A, np.zeros((m, k))], [b_ @ C, a]])
+            B, C, D = np.vstack([B, b_ @ D]), np.hstack([d @ C, c]), d @ D
+        return A, B, C, D
+
+    def toeplitz_of(sys):
+        """Lower-triangular map of an input held over each step (ZOH) to the sampled output."""
+        Ad, Bd, Cd, Dd, _ = cont2discrete(sys, dt, method="zoh")
+        h, x = np.zeros(n), Bd.ravel()
+        h[0] = Dd.item()
+        for k in range(1, n):
+            h[k] = (Cd @ x).item()
+            x = Ad @ x
+        return toeplitz(h, np.zeros(n))
+
+    num, den = azimuth_yaw_map(vehicle)
+    servo = ([1.0], [vehicle.servo.time_constant, 1.0])
+    W = ([1.0, 0.0], np.polyadd(izz * np.array([1.0, 2 * z * w, w * w, w ** 3 / 10]), [d_r, 0.0, 0.0]))
+    P = toeplitz_of(series((num / L, den), servo, W))  # W S D
+    P0 = toeplitz_of(series(servo, W))  # W S
+    b = (P0 - P) @ N0  # minus the plain error
+    plain = float(np.sqrt(np.mean(b[lead:] ** 2)))
+    assert 0.003 < plain < 0.012, plain  # the HIL test measures 6.5 mrad over six reversals
+
+    d0 = np.diff(np.r_[0.0, N0])
+    Cs = np.tril(np.ones((n, n)))  # c = cumulative increments
+
+    def best(thrust, start):
+        """RMS yaw error after the reversal of the best c with c = 0 before step `start`, the
+        commanded moment moving at most 4 thrust L rate_limit dt per step."""
+        rate = 4 * thrust * L * vehicle.servo.rate_limit * dt
+        lo, hi = -rate - d0, rate - d0
+        lo[:start], hi[:start] = -1e-12, 1e-12
+        res = lsq_linear(P @ Cs, b, bounds=(lo, hi), tol=1e-10)
+        e = P @ Cs @ res.x - b
+        return float(np.sqrt(np.mean(e[lead:] ** 2))), float(np.sqrt(np.mean(e ** 2)))
+
+    assert 4 * T * L * vehicle.servo.rate_limit * dt == pytest.approx(0.0616, abs=1e-4)
+    assert np.abs(d0).max() > 2 * 0.0616  # the 0.17 N m step needs about 3 steps of slewing
+    causal, _ = best(T, lead)
+    assert causal > 0.6 * plain, (causal, plain)  # measured 4.7 -> 3.2 mrad at most
+    t_max = float(JetGeometry(vehicle).thrust_max(np.zeros(vehicle.n_units))[0])  # 4.31 N
+    causal_full, _ = best(t_max, lead)
+    assert causal_full > 0.5 * plain, (causal_full, plain)  # not even at full thrust (2.6 mrad)
+    _, preview_all = best(T, 0)
+    assert preview_all < plain / 3, (preview_all, plain)  # measured 0.4 mrad
+
+
+def test_thrust_at_the_joint_angles_of_a_yaw_turn_cannot_stand_in_for_the_azimuths(vehicle):
+    """Why the reaction yaw cannot be cancelled by thrust changes instead (they make no seed-004
+    transient, so no right-half-plane zero): at the joint angles of a yaw turn they have almost no
+    yaw to give.
+
+    In a yaw turn every unit has about the same azimuth alpha and elevation beta. By hand (spec 3,
+    r_i = (+-a, +-a, h), d_i = cos b cos a e1 + cos b sin a e2 - sin b e3 with e2 = z x e1): unit i's
+    yaw per newton is (r_i x d_i)_z = L cos(b) sin(a), L = 0.11 m, the same for every unit, and its
+    heave per newton is d_z = -sin(b). So the only thrust pattern with any yaw is the uniform one
+    (the zero-sum patterns cancel), and it heaves: |dZ / dN| = tan|b| / (L sin|a|), 8.1 N per N m
+    at the re-vectoring flight's a = -0.17, b = -0.15 rad, while the transient yaw swings
+    0.2-0.28 N m there and the heave demand is 1.45 N. The allocator's own weights (heave 10 times
+    yaw) then make the best thrust-only answer to a pure yaw demand give under a tenth of it.
+    """
+    geo = JetGeometry(vehicle)
+    L = 0.11
+    a, b = -0.17, -0.15
+    k = vehicle.n_units
+    E = geo.effectiveness(np.full(k, a), np.full(k, b))
+    np.testing.assert_allclose(E[5], L * np.cos(b) * np.sin(a), rtol=2e-4)  # 0.11 m up to rounding
+    np.testing.assert_allclose(E[2], -np.sin(b), rtol=1e-9)
+    uniform = E @ np.ones(k)
+    np.testing.assert_allclose(uniform[[0, 1, 3, 4]], 0.0, atol=1e-9)  # no X, Y, roll, pitch
+    assert abs(uniform[2] / uniform[5]) == pytest.approx(np.tan(abs(b)) / (L * np.sin(abs(a))), rel=2e-4)
+    assert abs(uniform[2] / uniform[5]) == pytest.approx(8.1, abs=0.05)
+    for zero_sum in ([1, -1, 1, -1], [1, 0, -1, 0], [0, 1, 0, -1]):
+        assert abs(E[5] @ np.array(zero_sum, float)) < 1e-6
+    # the best thrust-only answer to a pure 0.1 N m yaw demand, in the allocator's metric
+    Wh = np.sqrt(AllocationConfig.from_vehicle(vehicle).weight_matrix())
+    demand = np.array([0, 0, 0, 0, 0, 0.1])
+    dT, *_ = np.linalg.lstsq(Wh @ E, Wh @ demand, rcond=None)
+    got = E @ dT
+    assert 0.0 < got[5] < 0.01, got  # under a tenth of the yaw asked for
+    assert abs(got[2]) > 5 * got[5], got  # and more heave error than yaw made
