@@ -82,6 +82,9 @@ ARM_S = 1.0  # a mission arms 1 s after it starts
 DIVE_S = 8.0  # the first leg: dive to depth, heading and zero speed
 SURFACE_S = 10.0  # the last leg: stop and surface
 END_S = 1.0  # after the surface leg the mission disarms; the next mission starts then
+END_MEAN_S = 2.0  # surfaced: the mean centre depth over the last 2 s of the surface leg is under the
+# hull's radius (its top is out of the water). The vehicle floats with its centre about 0.12 m down
+# and, still asked for depth 0, bobs by +-0.04 m there: one sample could catch it at 0.17 m.
 
 
 def random_mission(rng: np.random.Generator, env: Envelope) -> Mission:
@@ -215,6 +218,25 @@ class Schedule:
         if i < 0 or t_s >= self.starts_s[i] + self.missions[i].duration_s:
             return -1
         return i
+
+    def armed_expected(self, t_s: float, margin_s: float = 0.5) -> bool:
+        """Whether the vehicle should be armed and driving at t_s: inside a mission, margin_s past its
+        arming and before its surface leg, and not in a failsafe trip or its recovery (+ margin)."""
+        m = self.mission_at(t_s)
+        if m < 0:
+            return False
+        t0, mission = self.starts_s[m], self.missions[m]
+        if not t0 + mission.arm_s + margin_s <= t_s < t0 + mission.legs[-1].t0_s:
+            return False
+        return not any(i.t_s <= t_s < i.t_s + i.length_s + RECOVER_ARM_S + margin_s
+                       for i in self.injections if i.kind in TRIPS)
+
+    def next_armed_s(self, t_s: float, within_s: float = 120.0, step_s: float = 0.05) -> float | None:
+        """The first instant from t_s (on a step_s grid) at which `armed_expected`; None within within_s."""
+        for k in range(int(within_s / step_s) + 1):
+            if self.armed_expected(t_s + k * step_s):
+                return t_s + k * step_s
+        return None
 
     def counts(self) -> dict:
         c = Counter(i.kind for i in self.injections)
@@ -412,6 +434,7 @@ class Monitor:
         self.wall_limit_s = wall_limit_s
         self.t_s = 0.0  # vehicle time flown
         self.surface_m = vehicle.environment.surface_depth
+        self.radius_m = vehicle.body.radius
         self.floor_m = vehicle.environment.floor_depth
         self.say = say
         self.sample_s = sample_s
@@ -420,8 +443,9 @@ class Monitor:
         self.endpoint = None
         self.wall0 = None
         self.depth_max_m = -math.inf
-        self.end_depths_m: list = []  # vehicle depth when each mission disarms
+        self.end_depths_m: list = []  # mean vehicle depth over the END_MEAN_S before each mission disarms
         self._next_end = 0
+        self._end_sum = self._end_n = 0
         self._ends = [t0 + m.duration_s - END_S for t0, m in zip(schedule.starts_s, schedule.missions)]
         self._every = None
 
@@ -451,8 +475,12 @@ class Monitor:
         if ep.k % 10 == 0:
             depth = float(ep.plant.state[2]) - self.surface_m
             self.depth_max_m = max(self.depth_max_m, depth)
+        if self._next_end < len(self._ends) and t >= self._ends[self._next_end] - END_MEAN_S:
+            self._end_sum += float(ep.plant.state[2]) - self.surface_m
+            self._end_n += 1
         while self._next_end < len(self._ends) and t >= self._ends[self._next_end]:
-            self.end_depths_m.append(float(ep.plant.state[2]) - self.surface_m)
+            self.end_depths_m.append(self._end_sum / max(self._end_n, 1))
+            self._end_sum = self._end_n = 0
             self._next_end += 1
         if (ep.k + 1) % self._every == 0:
             rss = self.sample(t)
@@ -588,12 +616,12 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
     timeline = armed_timeline(result.tlog)
     after_s = RECOVER_ARM_S + 1.0
     back = [armed_at(timeline, i.t_s + i.length_s + after_s) for i in flown if i.t_s + i.length_s + after_s < fly_s]
-    for k in ("loss", "delay", "duplicate", "reorder"):
+    for k in ("loss", "delay", "duplicate", "reorder"):  # after a link fault: armed when next expected
         w = schedule.link.get(f"{k}_window_s")
-        if schedule.link.get(k if k != "delay" else "delay_s") and w[1] + after_s < fly_s:
-            m = schedule.mission_at(w[1] + after_s)
-            if m >= 0 and w[1] + after_s < schedule.starts_s[m] + schedule.missions[m].legs[-1].t0_s:
-                back.append(armed_at(timeline, w[1] + after_s))  # inside a mission's legs: armed
+        if schedule.link.get(k if k != "delay" else "delay_s"):
+            t = schedule.next_armed_s(w[1] + after_s)
+            if t is not None and t < fly_s:
+                back.append(armed_at(timeline, t))
     counts = Counter(i.kind for i in flown)
     counts.update({k: v for k, v in schedule.counts().items() if k.startswith("link_")
                    and schedule.link[k.removeprefix("link_") + "_window_s"][0] < fly_s})
@@ -616,7 +644,7 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
         "rejected_inputs": ob["rejected_inputs"],
         "depth_max_m": monitor.depth_max_m,
         "floor_clearance_min_m": monitor.floor_m - monitor.surface_m - monitor.depth_max_m,
-        "missions_surfaced": int(np.sum(ends < 0.15)),
+        "missions_surfaced": int(np.sum(ends < monitor.radius_m)),
         "surface_depth_max_m": float(ends.max()) if ends.size else float("nan"),
         "deadlines": deadlines,
         "memory": {"warmup_s": warmup_s, "samples": len(monitor.samples), **memory},

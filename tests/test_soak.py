@@ -100,6 +100,29 @@ def test_failsafe_recovery_follows_each_long_imu_outage():
     assert arm_command(True).param1 == 1.0
 
 
+
+def test_armed_is_expected_only_between_arming_and_the_surface_leg_outside_failsafe_trips():
+    """The hour soak judged two link windows unrecovered because it looked 1.6 s after each, once
+    between two missions (before the next one armed) and once inside an IMU outage's failsafe."""
+    s = soak.make_schedule(V, 1200.0, seed=2)
+    trip = next(i for i in s.injections if i.kind in soak.TRIPS)
+    t0, m = s.starts_s[trip.mission], s.missions[trip.mission]
+    assert not s.armed_expected(t0 + 0.5 * m.arm_s)  # before the mission arms
+    assert not s.armed_expected(t0 + m.arm_s + 0.4)  # within the margin after arming
+    assert s.armed_expected(t0 + m.arm_s + 0.6)
+    assert not s.armed_expected(trip.t_s + 0.01)  # failsafe ...
+    assert not s.armed_expected(trip.t_s + trip.length_s + soak.RECOVER_ARM_S + 0.4)  # ... and its recovery
+    after = trip.t_s + trip.length_s + soak.RECOVER_ARM_S + 0.5
+    assert s.next_armed_s(trip.t_s) == pytest.approx(after, abs=0.05 + 1e-9)
+    assert not s.armed_expected(t0 + m.legs[-1].t0_s)  # the surface leg disarms at its end
+    assert s.armed_expected(t0 + m.legs[-1].t0_s - 0.01) or any(
+        i.kind in soak.TRIPS and i.t_s <= t0 + m.legs[-1].t0_s - 0.01 for i in s.injections if i.mission == trip.mission)
+    # between missions: the next expected instant is the next mission's arming + margin
+    nxt = trip.mission + 1
+    end = t0 + m.duration_s
+    assert s.next_armed_s(end - 0.5) == pytest.approx(s.starts_s[nxt] + s.missions[nxt].arm_s + 0.5, abs=0.05 + 1e-9)
+    assert s.next_armed_s(1199.0, within_s=0.5) is None
+
 def test_no_faults_schedule_is_missions_only():
     s = soak.make_schedule(V, 600.0, seed=1, faults=False)
     assert s.injections == () and s.faults().empty and s.counts() == {}
