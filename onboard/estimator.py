@@ -63,6 +63,7 @@ in the consecutive-rejection divergence test (its remedy is the reset).
 from __future__ import annotations
 
 import math
+from copy import deepcopy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -454,12 +455,53 @@ def _covariance_predict(F, P, Q):
 
 
 @njit(cache=True)
+def _gauss_jordan_inverse(S):
+    """(S^-1, ok) of a small square S by Gauss-Jordan elimination with partial pivoting (the
+    exact inverse up to rounding, as LAPACK's getrf + getri); ok is False, and the first result
+    meaningless, if a pivot is zero or not finite (S singular or not finite)."""
+    n = S.shape[0]
+    A = np.empty((n, n))
+    X = np.eye(n)
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = S[i, j]
+            if not math.isfinite(S[i, j]):
+                return X, False
+    for c in range(n):
+        p, best = c, abs(A[c, c])
+        for r in range(c + 1, n):
+            if abs(A[r, c]) > best:
+                p, best = r, abs(A[r, c])
+        if not (best > 0.0 and math.isfinite(best)):
+            return X, False
+        if p != c:
+            for j in range(n):
+                A[p, j], A[c, j] = A[c, j], A[p, j]
+                X[p, j], X[c, j] = X[c, j], X[p, j]
+        d = A[c, c]
+        for j in range(n):
+            A[c, j] /= d
+            X[c, j] /= d
+        for r in range(n):
+            f = A[r, c]
+            if r != c and f != 0.0:
+                for j in range(n):
+                    A[r, j] -= f * A[c, j]
+                    X[r, j] -= f * X[c, j]
+    return X, True
+
+
+@njit(cache=True)
 def _joseph_update(x, P, H, R, y):
     """The EKF update of filterpy's EKF.update, compiled:
-    S = H P H^T + R; K = P H^T S^-1; x = x + K y; P = (I - K H) P (I - K H)^T + K R K^T."""
+    S = H P H^T + R; K = P H^T S^-1; x = x + K y; P = (I - K H) P (I - K H)^T + K R K^T.
+    S^-1 by `_gauss_jordan_inverse`, as the filterpy backend's `small_inverse`."""
     PHT = P @ H.T
     S = H @ PHT + R
-    K = PHT @ np.linalg.inv(S)
+    S_inv, ok = _gauss_jordan_inverse(S)
+    if not ok:
+        raise ValueError("singular or non-finite innovation covariance")
+    K = PHT @ S_inv
     xn = x + K @ y
     I_KH = np.eye(x.shape[0]) - K @ H
     Pn = I_KH @ P @ I_KH.T + K @ R @ K.T
@@ -503,15 +545,66 @@ def _covariance_check(x, P, limits):
     return 0
 
 
+def small_inverse(S) -> np.ndarray:
+    """S^-1 of the innovation covariance (at most 10 x 10 here), compiled: scipy.linalg.inv, which
+    filterpy's EKF.update calls, spends ~20 us per call on its checks and dispatch (half of that
+    update's cost in the onboard loop, measured) for an inversion worth a microsecond. Raises
+    numpy.linalg.LinAlgError as numpy.linalg.inv does for a singular (or non-finite) S."""
+    S = np.asarray(S, dtype=np.float64)
+    if S.ndim != 2 or S.shape[0] != S.shape[1]:
+        raise np.linalg.LinAlgError(f"small_inverse: expected a square matrix, got shape {S.shape}")
+    X, ok = _gauss_jordan_inverse(S)
+    if not ok:
+        raise np.linalg.LinAlgError("small_inverse: singular or non-finite matrix")
+    return X
+
+
 class _ModelAidedEKF(ExtendedKalmanFilter):
     """filterpy's EKF with the nonlinear mean propagation of the vehicle model.
 
     `predict_x` is filterpy's documented override point for a nonlinear f(x, u); here u is the
     (mean, F) pair computed by `_propagate`, so predict() does x = f(x, u), P = F P F^T + Q.
+    `update` is filterpy's EKF.update with S^-1 taken by `self.inv`, the hook filterpy's own
+    KalmanFilter has (its EKF calls scipy.linalg.inv directly): here the compiled `small_inverse`.
     """
+
+    inv = staticmethod(small_inverse)
 
     def predict_x(self, u=0):
         self.x, self.F = u
+
+    def update(self, z, HJacobian, Hx, R=None, args=(), hx_args=(), residual=np.subtract):
+        """filterpy.kalman.ExtendedKalmanFilter.update (filterpy 2.0.0), statement for statement,
+        but S^-1 = self.inv(S): K = P H^T S^-1, x = x + K (z - h(x)),
+        P = (I - K H) P (I - K H)^T + K R K^T (Joseph form)."""
+        if z is None:
+            return super().update(z, HJacobian, Hx, R, args, hx_args, residual)
+        if not isinstance(args, tuple):
+            args = (args,)
+        if not isinstance(hx_args, tuple):
+            hx_args = (hx_args,)
+        if R is None:
+            R = self.R
+        elif np.isscalar(R):
+            R = np.eye(self.dim_z) * R
+        if np.isscalar(z) and self.dim_z == 1:
+            z = np.asarray([z], float)
+        H = HJacobian(self.x, *args)
+        PHT = np.dot(self.P, H.T)
+        self.S = np.dot(H, PHT) + R
+        self.SI = self.inv(self.S)
+        self.K = PHT.dot(self.SI)
+        hx = Hx(self.x, *hx_args)
+        self.y = residual(z, hx)
+        self.x = self.x + np.dot(self.K, self.y)
+        I_KH = self._I - np.dot(self.K, H)
+        self.P = np.dot(I_KH, self.P).dot(I_KH.T) + np.dot(self.K, R).dot(self.K.T)
+        self._log_likelihood = None
+        self._likelihood = None
+        self._mahalanobis = None
+        self.z = deepcopy(z)
+        self.x_post = self.x.copy()
+        self.P_post = self.P.copy()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -583,6 +676,7 @@ class Estimator:
         self._present = np.zeros(len(STREAMS), dtype=bool)
         self._init = (float(depth_m), tuple(map(float, euler_rad)), tuple(map(float, gyro_bias_rad_s)))
         self.reset()
+        small_inverse(np.eye(1))  # loads the compiled inverse now, not in the first update
 
     # -- lifecycle ---------------------------------------------------------------------------
     def reset(self, depth_m: float | None = None, euler_rad=None, gyro_bias_rad_s=None) -> None:

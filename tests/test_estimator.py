@@ -11,7 +11,7 @@ import pytest
 from hil.plant import Plant
 from onboard import model
 from onboard.estimator import (
-    N_X, STREAMS, X_DEPTH, X_DIST, X_EULER, Estimator, EstimatorTuning, _linearise, state_from_truth,
+    N_X, STREAMS, X_DEPTH, X_DIST, X_EULER, Estimator, EstimatorTuning, _linearise, small_inverse, state_from_truth,
 )
 from onboard.sensors import AttitudeSample, ImuSample, depth_from_pressure
 from onboard.vehicle import load_vehicle
@@ -299,6 +299,27 @@ def test_compiled_backend_equals_filterpy(vehicle):
     assert a.health.rejected_nonfinite[STREAMS.index("attitude")] == 1
     with pytest.raises(ValueError, match="backend"):
         Estimator(vehicle, backend="ukf")
+
+
+def test_small_inverse_is_the_inverse():
+    """The compiled S^-1 of the update: a hand-inverted 2 x 2 (inverse = adj / det), a pivoting
+    case (zero leading entry), numpy's inverse on innovation-like covariances of 1..10 rows, and
+    numpy's error for a singular or non-finite S."""
+    # [[4, 2], [2, 3]]^-1 = [[3, -2], [-2, 4]] / (4 * 3 - 2 * 2)
+    np.testing.assert_allclose(small_inverse([[4.0, 2.0], [2.0, 3.0]]), np.array([[3.0, -2.0], [-2.0, 4.0]]) / 8.0,
+                               rtol=1e-15)
+    np.testing.assert_allclose(small_inverse([[0.0, 2.0], [0.5, 0.0]]), [[0.0, 2.0], [0.5, 0.0]], rtol=1e-15)
+    rng = np.random.default_rng(3)
+    for m in range(1, 11):
+        H = rng.standard_normal((m, N_X))
+        A = rng.standard_normal((N_X, N_X))
+        S = H @ (A @ A.T * 1e-3) @ H.T + np.diag(rng.uniform(1e-6, 1e-2, m))  # H P H^T + R
+        X = small_inverse(S)
+        np.testing.assert_allclose(X, np.linalg.inv(S), rtol=1e-9, atol=1e-9 * np.abs(X).max())
+        np.testing.assert_allclose(X @ S, np.eye(m), atol=1e-9)
+    for bad in ([[1.0, 2.0], [2.0, 4.0]], [[1.0, np.nan], [0.0, 1.0]]):
+        with pytest.raises(np.linalg.LinAlgError):
+            small_inverse(bad)
 
 
 def test_default_start_at_the_surface_locks_onto_the_first_depth(vehicle):
