@@ -213,6 +213,10 @@ class Controller:
         self._flags = np.array([float(g.feedforward), float(self._on_surface), float(self._on_wall),
                                 float(self._on_current)])
         self.reset()
+        z6, ro6 = np.zeros(6), np.zeros(6)
+        ro6.setflags(write=False)  # the allocator's achieved wrench is read-only
+        for got in (z6, ro6):  # load the compiled kernel now, not in the first step
+            _saturation(z6, got, self.capacity, True)
 
     @property
     def gains_si(self) -> dict:
@@ -263,8 +267,10 @@ class Controller:
         p = self.params
         phi, theta, psi = estimate.euler_rad
         z = estimate.depth_m
-        nu = np.array(tuple(estimate.velocity_body_m_s) + tuple(estimate.rates_rad_s), dtype=float)
-        if not (np.all(np.isfinite(nu)) and math.isfinite(z) and all(map(math.isfinite, (phi, theta, psi)))):
+        nu_t = tuple(estimate.velocity_body_m_s) + tuple(estimate.rates_rad_s)
+        nu = np.array(nu_t, dtype=float)
+        if not (all(map(math.isfinite, nu.tolist())) and math.isfinite(z)
+                and all(map(math.isfinite, (phi, theta, psi)))):
             raise ValueError("Controller.step: the estimate holds non-finite values; hold the failsafe instead")
         if not self._started:
             self._z_r, self._zd_r = z, 0.0
@@ -320,21 +326,25 @@ class Controller:
         self._psid_r = psid_new
         self._psi_r = _wrap(self._psi_r + self._psid_r * dt)
         vel_on = [u_sp is not None, v_sp is not None]
-        vel_sp = np.array([u_sp or 0.0, v_sp or 0.0])
-        vel_dot_r = (vel_sp - self._vel_r) / g.velocity_reference_s  # u_r' = (u_sp - u_r) / T
+        # u_r' = (u_sp - u_r) / T, per axis on floats (numpy calls on 2 values cost more than this)
+        vel_sp = (u_sp or 0.0, v_sp or 0.0)
+        vel_r = self._vel_r.tolist()
+        vel_dot_r = [0.0, 0.0]
         for i in range(2):
-            if not vel_on[i]:
-                self._vel_r[i], vel_dot_r[i] = nu[i], 0.0
-        self._vel_r = self._vel_r + vel_dot_r * dt
+            if vel_on[i]:
+                vel_dot_r[i] = (vel_sp[i] - vel_r[i]) / g.velocity_reference_s
+            else:
+                vel_r[i] = nu_t[i]
+        self._vel_r = np.array([vel_r[0] + vel_dot_r[0] * dt, vel_r[1] + vel_dot_r[1] * dt])
 
         # ---- anti-windup inputs: which axes are saturated, and which way ----------------------
         cap = self.capacity
         demand = self._last_tau
         if achieved is not None:
             got = np.asarray(achieved, dtype=float).reshape(6)
-            sat = np.isfinite(got) & (np.abs(demand - got) > 0.05 * cap)
+            sat, sat_dir = _saturation(demand, got, cap, True)
         else:
-            sat = np.abs(demand) >= cap
+            sat, sat_dir = _saturation(demand, demand, cap, False)
         ref = np.array([
             self._z_r, self._zd_r, zdd_r, self._psi_r, self._psid_r, psidd_r,
             self._vel_r[0], self._vel_r[1], vel_dot_r[0], vel_dot_r[1],
@@ -342,7 +352,7 @@ class Controller:
         ])
         est = np.array([phi, theta, psi, z, estimate.depth_rate_m_s])
         tau, tau_ff, w_r = _control_law(
-            p, est, nu, ref, self._gain_vec, cap, sat, np.sign(demand) * sat, self._ints, dt, self._flags,
+            p, est, nu, ref, self._gain_vec, cap, sat, sat_dir, self._ints, dt, self._flags,
         )
         self._last_tau = tau
         self.reference = Reference(
@@ -359,6 +369,23 @@ class Controller:
             feedback=tuple((tau - tau_ff).tolist()),
         )
         return Wrench(tuple(tau[0:3].tolist()), tuple(tau[3:6].tolist()))
+
+
+@njit(cache=True)
+def _saturation(demand, achieved, cap, use_achieved):
+    """(sat, sat_dir) of the anti-windup: axis i is saturated if the achieved wrench (when given,
+    and finite) missed last step's demand by more than 5 % of the axis capacity, else if the
+    demand reached the capacity; sat_dir = sign(demand) where saturated, 0 elsewhere."""
+    sat = np.empty(6, dtype=np.bool_)
+    sat_dir = np.empty(6)
+    for i in range(6):
+        if use_achieved:
+            s = math.isfinite(achieved[i]) and abs(demand[i] - achieved[i]) > 0.05 * cap[i]
+        else:
+            s = abs(demand[i]) >= cap[i]
+        sat[i] = s
+        sat_dir[i] = np.sign(demand[i]) * (1.0 if s else 0.0)
+    return sat, sat_dir
 
 
 @njit(cache=True)
