@@ -412,6 +412,29 @@ def test_change_penalty_applies_only_with_a_previous_command(vehicle):
     np.testing.assert_allclose(again.force_body_n, free.force_body_n, atol=2e-3)
 
 
+def test_assigning_previous_is_committing_it(vehicle):
+    """The loop sets `allocator.previous = None` on a restart and tests set it directly: the change
+    reference follows the assignment exactly as it follows commit() / reset() (same plan, bit for
+    bit, on twin allocators), and an assigned allocation is not changed by later steps."""
+    cfg = AllocationConfig.from_vehicle(vehicle, change_weight=1.0, **RELAXED)
+    a, b = np.full(4, 0.1), np.full(4, 0.5)
+    tau1 = np.array([1.0, 0.0, -3.0, 0.0, 0.0, 0.0])
+    tau2 = np.array([-1.0, 0.8, -2.0, 0.0, 0.0, 0.1])
+    x, y = QpAllocator(vehicle, DT, cfg), QpAllocator(vehicle, DT, cfg)
+    first = x.allocate(tau1, a, b, commit=False)
+    y.allocate(tau1, a, b, commit=False)  # same solver history
+    x.commit(first)
+    y.previous = first
+    px, py = x.allocate(tau2, a, b, commit=False), y.allocate(tau2, a, b, commit=False)
+    np.testing.assert_array_equal(px.command, py.command)
+    assert np.linalg.norm(px.force_body_n - first.force_body_n) > 0  # a real step away from it
+    x.reset()
+    y.previous = None
+    rx, ry = x.allocate(tau2, a, b), y.allocate(tau2, a, b)
+    np.testing.assert_array_equal(rx.command, ry.command)
+    assert not first.force_body_n.flags.writeable and not rx.thrust_n.flags.writeable
+
+
 def test_allocator_thrust_is_the_plant_model_thrust_with_inflow_off_too():
     """With `thrust_inflow` off the allocator's thrust is the model's bollard thrust as well."""
     from onboard import model
