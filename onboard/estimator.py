@@ -585,9 +585,9 @@ class _ModelAidedEKF(ExtendedKalmanFilter):
             hx_args = (hx_args,)
         if R is None:
             R = self.R
-        elif np.isscalar(R):
+        elif not isinstance(R, np.ndarray) and np.isscalar(R):  # (an array is never a scalar: skip the test)
             R = np.eye(self.dim_z) * R
-        if np.isscalar(z) and self.dim_z == 1:
+        if not isinstance(z, np.ndarray) and np.isscalar(z) and self.dim_z == 1:
             z = np.asarray([z], float)
         H = HJacobian(self.x, *args)
         PHT = np.dot(self.P, H.T)
@@ -602,7 +602,7 @@ class _ModelAidedEKF(ExtendedKalmanFilter):
         self._log_likelihood = None
         self._likelihood = None
         self._mahalanobis = None
-        self.z = deepcopy(z)
+        self.z = z.copy() if type(z) is np.ndarray else deepcopy(z)  # (the same copy, without deepcopy's dispatch)
         self.x_post = self.x.copy()
         self.P_post = self.P.copy()
 
