@@ -25,15 +25,25 @@ the other differ by 50% from load alone, more than the differences being measure
    settling time (hil.demo.tracking_errors), side by side for: QP + compensation and QP alone (each
    with the filterpy EKF and with the same EKF compiled in numba), and the baseline (pseudo-inverse
    at the current joint angles, clipped: ArduSub-style fixed mixing).
+
+Before / after a change, in one process: `--against DIR` also flies the four QP configurations of
+another checkout's `onboard` package (DIR: a checkout, e.g. `git worktree add /tmp/before HEAD~3`
+or `git archive REV | tar -x -C /tmp/before`), interleaved with this one's, rows marked
+"(DIR)". Runs one after the other differ by more than the changes being measured on this
+shared machine; interleaved, both meet the same load. (Nine flights interleaved press the caches
+harder than five: compare the rows of one run, not with another run's.)
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import math
 import os
 import platform
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -49,12 +59,14 @@ from onboard.vehicle import load_vehicle  # noqa: E402
 
 
 class Flight:
-    """One configuration flying the mission in lock-step, one control period per `tick()`."""
+    """One configuration flying the mission in lock-step, one control period per `tick()`.
 
-    def __init__(self, vehicle, mission, config: LoopConfig, seed: int, estimator=None):
+    `loop_class`: the OnboardLoop to fly (default this checkout's; `--against` passes another's)."""
+
+    def __init__(self, vehicle, mission, config: LoopConfig, seed: int, estimator=None, loop_class=None):
         self.link = Link("udpin:127.0.0.1:0")  # never spoken to: what the loop sends is counted and dropped
         self.clock = VehicleClock()
-        self.loop = OnboardLoop(vehicle, self.link, self.clock, config, estimator=estimator)
+        self.loop = (loop_class or OnboardLoop)(vehicle, self.link, self.clock, config, estimator=estimator)
         self.plant = Plant(vehicle, dt_s=0.001, seed=seed, depth_m=0.0)
         self.period = 1.0 / config.control_rate_hz
         self.setpoints = sorted(mission.setpoints(), key=lambda p: p[0])
@@ -91,9 +103,9 @@ class Flight:
         return self.truth, self.loop
 
 
-def fly(vehicle, mission, config: LoopConfig, seed: int):
+def fly(vehicle, mission, config: LoopConfig, seed: int, loop_class=None):
     """The mission in lock-step, in-process: returns (truth samples, loop)."""
-    flight = Flight(vehicle, mission, config, seed)
+    flight = Flight(vehicle, mission, config, seed, loop_class=loop_class)
     while flight.tick():
         pass
     return flight.finish()
@@ -112,6 +124,19 @@ def fly_interleaved(flights) -> list:
     return [f.finish() for f in flights]
 
 
+def other_onboard(checkout: str):
+    """(OnboardLoop, LoopConfig) of another checkout's `onboard` package, imported beside this one
+    under another name (a copy in a temporary directory: its modules import each other relatively)."""
+    src = Path(checkout).expanduser().resolve() / "onboard"
+    if not (src / "loop.py").is_file():
+        raise SystemExit(f"--against: expected a checkout with onboard/loop.py, got {checkout!r} ({src} has none)")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_against_"))
+    shutil.copytree(src, tmp / "onboard_against", ignore=shutil.ignore_patterns("__pycache__"))
+    sys.path.insert(0, str(tmp))
+    loop = importlib.import_module("onboard_against.loop")
+    return loop.OnboardLoop, loop.LoopConfig
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=0)
@@ -122,6 +147,9 @@ def main(argv=None) -> int:
                          "is shared) (default 2)")
     ap.add_argument("--duration", type=float, default=None,
                     help="fly only the first DURATION s of the mission (default: all of it)")
+    ap.add_argument("--against", metavar="DIR", default=None,
+                    help="also fly the QP configurations of the onboard package of the checkout DIR, interleaved "
+                         "with this one's (a before/after comparison in one process)")
     args = ap.parse_args(argv)
     v = load_vehicle()
     mission = reference_mission()
@@ -142,12 +170,21 @@ def main(argv=None) -> int:
                                               estimator_backend="compiled")),
         ("baseline (pinv, clipped)", LoopConfig(control_rate_hz=args.rate, allocator="baseline", compensation=False)),
     ]
-    for _, cfg in configs:  # compile / warm up
-        fly(v, type(mission)(mission.legs[:1], 1.0), cfg, args.seed)
+    classes = {name: None for name, _ in configs}
+    if args.against is not None:
+        other_loop, other_config = other_onboard(args.against)
+        tag = f" ({args.against})"
+        others = [(name + tag, other_config(**{f: getattr(cfg, f) for f in ("control_rate_hz", "allocator",
+                                                                           "compensation", "estimator_backend")}))
+                  for name, cfg in configs[:-1]]
+        classes.update({name: other_loop for name, _ in others})
+        configs = configs[:-1] + others + configs[-1:]  # the baseline stays last (the ratios below)
+    for name, cfg in configs:  # compile / warm up
+        fly(v, type(mission)(mission.legs[:1], 1.0), cfg, args.seed, loop_class=classes[name])
     best = {}
     for rep in range(max(args.repeat, 1)):
         t0 = time.perf_counter()
-        flown = fly_interleaved([Flight(v, mission, cfg, args.seed) for _, cfg in configs])
+        flown = fly_interleaved([Flight(v, mission, cfg, args.seed, loop_class=classes[name]) for name, cfg in configs])
         print(f"run {rep + 1}: {len(configs)} configurations interleaved, {time.perf_counter() - t0:.0f} s wall")
         for (name, _), (truth, loop) in zip(configs, flown):
             s = loop.stats.summary()
