@@ -395,6 +395,45 @@ def rss_kb(pid: int | str = "self") -> int:
     return pages * os.sysconf("SC_PAGE_SIZE") // 1024
 
 
+def proc_counters(pid: int | str = "self") -> dict:
+    """What the kernel says a process went through (cumulative): minor and major page faults,
+    CPU time (s, user + system), involuntary context switches (/proc/PID/stat and status); and the
+    machine's stolen time (s, /proc/stat: a hypervisor running other guests on our vCPUs). Read
+    once a simulated minute so an overrun can be set beside what its minute held; {} if gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        with open(f"/proc/{pid}/status") as f:
+            nivcsw = next(int(line.split()[1]) for line in f if line.startswith("nonvoluntary_ctxt_switches"))
+        with open("/proc/stat") as f:
+            steal = int(f.readline().split()[8])
+    except (OSError, ValueError, IndexError, StopIteration):
+        return {}
+    tick = os.sysconf("SC_CLK_TCK")
+    # fields[0] is the state (field 3 of proc(5)): minflt is field 10, majflt 12, utime 14, stime 15
+    return {"minflt": int(fields[7]), "majflt": int(fields[9]), "cpu_s": (int(fields[11]) + int(fields[12])) / tick,
+            "nivcsw": nivcsw, "steal_s": steal / tick}
+
+
+def minute_context(times_s, samples: list, who: str = "onboard") -> dict:
+    """For the simulated minutes holding `times_s` (e.g. CPU overruns) against every minute: the
+    party's minor page faults, involuntary context switches and the machine's stolen time per
+    minute (medians). `samples`: [(t_s, {party: proc_counters})] as the Monitor takes them."""
+    t = np.array([s[0] for s in samples if s[1].get(who)], float)
+    keys = ("minflt", "nivcsw", "steal_s")
+    c = np.array([[s[1][who][k] for k in keys] for s in samples if s[1].get(who)], float).reshape(-1, len(keys))
+    if len(t) < 2:
+        return {}
+    per_min = np.diff(c, axis=0)  # row i: the minute (t[i], t[i+1]]
+    hit = sorted({int(i) for i in np.searchsorted(t, np.asarray(times_s, float), side="left") - 1
+                  if 0 <= i < len(per_min)})
+    out = {"minutes": len(per_min), "minutes_hit": len(hit)}
+    for j, k in enumerate(keys):
+        out[f"{k}_median"] = float(np.median(per_min[:, j]))
+        out[f"{k}_median_hit"] = float(np.median(per_min[hit, j])) if hit else float("nan")
+    return out
+
+
 # ------------------------------------------------------------------------------------------------
 # The run
 
@@ -440,6 +479,7 @@ class Monitor:
         self.sample_s = sample_s
         self.pids = {"plant": os.getpid()}
         self.samples: list = []  # (t_s, {party: rss_kb}): one a simulated minute, bounded by the duration
+        self.counters: list = []  # (t_s, {party: proc_counters}), the same minutes
         self.endpoint = None
         self.wall0 = None
         self.depth_max_m = -math.inf
@@ -462,6 +502,7 @@ class Monitor:
     def sample(self, t_s: float) -> dict:
         rss = {who: rss_kb(pid) for who, pid in self.pids.items()}
         self.samples.append((t_s, rss))
+        self.counters.append((t_s, {who: proc_counters(pid) for who, pid in self.pids.items()}))
         return rss
 
     def __call__(self, ep) -> None:
@@ -546,6 +587,8 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
         "history_steps": ob["history_steps"],
         "overruns": ob.get("overrun_log", []),  # the newest 100: (vehicle time s, wall ms, CPU ms, of it in the garbage collector ms)
     }
+    # the minutes of those overruns against all minutes: page faults, preemption, stolen time
+    deadlines["overrun_minutes"] = minute_context([o[0] for o in deadlines["overruns"]], monitor.counters)
     # memory
     parties = list(monitor.samples[0][1])
     ts = [t for t, _ in monitor.samples]
@@ -649,6 +692,7 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
         "deadlines": deadlines,
         "memory": {"warmup_s": warmup_s, "samples": len(monitor.samples), **memory},
         "memory_samples": [{"t_s": t, **r} for t, r in monitor.samples],
+        "proc_samples": [{"t_s": t, **c} for t, c in monitor.counters],  # cumulative, a simulated minute apart
         "packets": packets,
     }
 
@@ -669,6 +713,12 @@ def table(s: dict) -> str:
         ("", f"steps over {d['period_ms']:.0f} ms, wall time", f"{d['missed_wall']} of {d['steps']}"),
         ("", "  wall max / p99.9 / median", f"{d['wall_max_ms']:.2f} / {d['wall_p999_ms']:.2f} / {d['wall_median_ms']:.2f} ms"),
     ]
+    om = d.get("overrun_minutes") or {}
+    if om.get("minutes_hit"):
+        rows.append(("", f"  the {om['minutes_hit']} minutes with a CPU overrun (all minutes), medians",
+                     f"onboard page faults {om['minflt_median_hit']:.0f} ({om['minflt_median']:.0f}), "
+                     f"preempted {om['nivcsw_median_hit']:.0f} ({om['nivcsw_median']:.0f}), "
+                     f"machine steal {om['steal_s_median_hit']:.2f} s ({om['steal_s_median']:.2f} s)"))
     for who in ("plant", "onboard", "recorder"):
         if who in m:
             x = m[who]

@@ -158,6 +158,36 @@ def test_rss_of_this_process_is_positive_and_of_a_gone_process_is_minus_one():
     assert soak.rss_kb(2 ** 22 + 7) == -1
 
 
+def test_proc_counters_see_page_faults_and_cpu_time_of_this_process():
+    import time
+    c0 = soak.proc_counters()
+    n = 8 << 20  # 8 MB, written a byte a page: 2048 fresh pages, one minor fault each at least
+    b = bytearray(n)
+    for i in range(0, n, 4096):
+        b[i] = 1
+    t_end = time.process_time() + 0.2
+    while time.process_time() < t_end:
+        pass
+    c1 = soak.proc_counters()
+    assert c1["minflt"] - c0["minflt"] >= n // 4096 // 2  # (bytearray's zeroed pages may be mapped lazily: half at least)
+    assert c1["cpu_s"] - c0["cpu_s"] >= 0.1  # clock ticks (10 ms): 0.2 s busy shows
+    assert c1["majflt"] >= c0["majflt"] and c1["nivcsw"] >= c0["nivcsw"] and c1["steal_s"] >= c0["steal_s"] >= 0
+    assert soak.proc_counters(2 ** 22 + 7) == {}
+
+
+def test_minute_context_sets_the_overrun_minutes_beside_all_minutes():
+    c = lambda f, n, st: {"onboard": {"minflt": f, "nivcsw": n, "steal_s": st}}  # noqa: E731
+    # cumulative counters at 0, 60, 120, 180 s: per minute faults 10, 500, 20; steal 0, 3, 0
+    samples = [(0.0, c(0, 0, 0.0)), (60.0, c(10, 1, 0.0)), (120.0, c(510, 9, 3.0)), (180.0, c(530, 10, 3.0)),
+               (240.0, {"onboard": {}})]  # a minute after the process went: left out
+    got = soak.minute_context([61.0, 119.9, 100.0], samples)
+    assert got["minutes"] == 3 and got["minutes_hit"] == 1
+    assert got["minflt_median_hit"] == 500 and got["minflt_median"] == 20
+    assert got["nivcsw_median_hit"] == 8 and got["steal_s_median_hit"] == 3.0 and got["steal_s_median"] == 0.0
+    assert soak.minute_context([10.0], samples[:1]) == {}
+    assert soak.minute_context([], samples)["minutes_hit"] == 0
+
+
 # -- fixed-memory histories ------------------------------------------------------------------------
 
 
