@@ -16,20 +16,21 @@ outputs (spec 4.1, the same formula as `onboard.model.jets_and_transients`):
     lateral        g F1y along e_alpha,  g F2z along e_beta
     moment         r x (force change) - g M1z about body z
 
-`allocate_compensated` allocates demand - c, c the compensated share of the transient of the
-coming step. With ZOH the rows are strictly proper (Dd = 0), so that transient is set by joint
+`allocate_compensated` allocates demand - c_lat, c_lat the compensated share of the lateral
+transient of the coming step, then makes up the compensated share of each unit's axial loss by
+that unit's own speed at its planned angles (`_make_up`). With ZOH the rows are strictly proper (Dd = 0), so that transient is set by joint
 motion already committed (the free response of the carried states, `free_rows`) plus a forced
 part of at most C Bd / 2 <= 0.041 row units per rad/s of the step's own rate: no algebraic loop
 and no fixed-point iteration over the plan (which formed a limit cycle at the joints' rate limit).
 Only the rows that can be cancelled without turning the joints for it are (COMPENSATED_ROWS:
-axial loss in full, half the lateral force, not on yaw): cancelling the reaction moment or the
-lateral force by turning the azimuths excites them more than it cancels.
+half the axial loss, by speed only; half the lateral force, not on yaw): cancelling the reaction
+moment or the lateral force by turning the azimuths excites them more than it cancels.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
@@ -38,11 +39,13 @@ from scipy.signal import cont2discrete, tf2ss
 from . import model
 from .jit import MODEL_SOURCE, key_caches_on
 from .allocation import Allocation, JetGeometry
+from .allocation import outcome as alloc_outcome
 from .vehicle import Vehicle
 
 ROWS = model.TRANSIENT_ROWS  # ("f1x", "f1y", "m1z", "f2x", "f2z")
-# Share of each row (F1x, F1y, M1z, F2x, F2z) taken out of the demand (see allocate_compensated):
-# the axial losses in full, the lateral forces half, the reaction moment not at all.
+# Share of each row (F1x, F1y, M1z, F2x, F2z) compensated (see allocate_compensated): the axial
+# losses in full (made up by each unit's own speed after the plan, `_make_up`), the lateral forces
+# half (taken out of the demand), the reaction moment not at all.
 COMPENSATED_ROWS = (1.0, 0.5, 0.0, 1.0, 0.5)
 # Wrench axes [X, Y, Z, K, M, N] on which the lateral rows are compensated: not yaw.
 LATERAL_AXES = (1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
@@ -323,19 +326,44 @@ class CompensatedAllocation:
 
 def allocate_compensated(allocator, compensator: TransientCompensator, wrench_demand, nu_r=None,
                          iterations: int = 2, commit: bool = True) -> CompensatedAllocation:
-    """Allocate demand - c, c the compensated part of the transient of the coming step.
+    """Allocate demand - c_lat, then make up the axial loss by speed: jets + transient ~ demand.
 
-    1. c from the coming step's free response (`free_rows`: what the joint motion already
+    1. c_lat from the coming step's free response (`free_rows`: what the joint motion already
        committed leaves in the filters; with ZOH the rows' Dd is 0, so no algebraic loop) at the
-       last plan's thrust and the current joint angles (`_correction`); plan demand - c.
-    2. `iterations` times (any integer >= 0; 0 = step 1 only): c again from the plan's own
-       thrust and joint motion (free + forced part, `predict`); re-plan demand - c; stop once c
-       moves by under REPLAN_TOL_N (1 mN). Through the plan c changes only with T (axial loss fraction capped
-       at LOSS_CAP = 0.2, lateral rows g F ~ 0.0126 T per unit of row output) and with the forced
-       part (C Bd / 2 <= 0.041, so under 0.3 % of T at the rate limit): a contraction, not the
-       re-plan against the plan's own full transient that chattered at the rate limit.
-    3. The full prediction (every row, `predict`) of the final plan is returned as `prediction`
-       and, with `commit`, the allocator and the compensator advance.
+       last plan's thrust and the current joint angles (`_correction`: rows F1y, F2z, not on yaw);
+       plan demand - c_lat.
+    2. `iterations` times (any integer >= 0; 0 = step 1 only): c_lat again from the plan's own
+       thrust and joint motion (free + forced part, `predict`); re-plan demand - c_lat; stop once
+       it moves by under REPLAN_TOL_N (1 mN). Through the plan c_lat changes only with T (g F ~
+       0.0126 T per unit of row output) and with the forced part (C Bd / 2 <= 0.041, so under
+       0.3 % of T at the rate limit): a contraction, not the re-plan against the plan's own full
+       transient that chattered at the rate limit.
+    3. The axial loss (spec 4.1: a unit commanded to T gives (T - g (F1x + F2x)) along its own d,
+       g = gain T) is made up by that unit's speed at the planned joint angles (`_make_up`,
+       `make_up_thrust`: T_cmd = T / (1 - L), L = gain (w0 F1x + w3 F2x) <= LOSS_CAP), within
+       each unit's T_max(J) and with what is left undone balanced in yaw
+       (`yaw_balanced_make_up`); n from the inverse of seed-000 eq. 15. No allocator call, no
+       joint motion for it.
+    4. The full prediction (every row) of the plan at the commanded thrust is returned as
+       `prediction`; `allocation` is the plan at the made-up speeds (what is sent), `correction_n`
+       = c_lat + c_ax (the jets give demand - c). With `commit` the allocator advances with its own
+       plan (its change reference stays the QP's sequence) and the compensator with the prediction.
+
+    Why the axial loss is not taken out of the demand (as it was until the sway measurement): a
+    wrench handed to the QP is realised however the QP likes, and with 12 force components for 6
+    wrench axes and a change penalty it re-vectors for it. F1x is driven by |azimuth rate| (eq. 5,
+    57 rad/s mode): the re-vectoring made more loss, the loss more make-up, and at 0.3 m/s the loop
+    closed into a ~9 Hz limit cycle at the azimuths' rate limit (HIL, sway +-0.3 m/s: 24 % of the
+    azimuth commands at the limit, yaw disturbance x8). Measured in HIL, sway +-0.3 m/s: no axial
+    make-up: no chatter (3.8 %), yaw x0.89; make-up in the demand capped at each unit's headroom
+    T_max(J) - T: chatter stays (10.5 %), yaw x12 (so not the jets' saturation); make-up by speed:
+    chatter gone (3.5 %), yaw x1.35, the rest from the units at full speed (n_max 4 % of the
+    time) leaving their loss undone while the others made theirs up: a lopsided force with yaw.
+    With that remainder balanced in yaw (`yaw_balanced_make_up`): yaw x0.72, position x0.155.
+    The four translation scenarios (surge, sway +-0.3, surge <-> sway 0.3, surge +-0.2 m/s): yaw
+    x0.49, 0.72, 0.82, 0.97; position x0.15, 0.155, 0.12, 0.14 (were x1.52, 8.0, 2.94, 0.83).
+    The price, yaw reversals (tests/test_closed_loop.py): position 0.173 -> 0.072 m (was 0.019 m
+    with the QP re-vectoring for the make-up), yaw x1.09 (was x1.15).
 
     Not every row is cancelled (`COMPENSATED_ROWS`, `LATERAL_AXES`). Cancelling a transient that
     needs the azimuths to turn excites the transient again through the same turn: for the yaw
@@ -375,41 +403,128 @@ def allocate_compensated(allocator, compensator: TransientCompensator, wrench_de
         alloc = allocator.allocate(tau - corr, nu_r=nu_r, commit=False)
         pred = compensator.predict(alloc.alpha_rad, alloc.beta_rad, alloc.thrust_n)
         done += 1
+    sent, pred, axial = _make_up(allocator, compensator, alloc, pred, nu_r)
     if commit:
         allocator.commit(alloc)
         compensator.commit(pred)
-    return CompensatedAllocation(alloc, pred, tau, np.asarray(alloc.wrench_achieved) + pred.wrench_n, done,
-                                 corr)
+    return CompensatedAllocation(sent, pred, tau, np.asarray(sent.wrench_achieved) + pred.wrench_n, done,
+                                 corr + axial)
 
 
 REPLAN_TOL_N = 1e-3  # re-plan only if c moved by more (1 mN: far below what the loop can track)
-LOSS_CAP = 0.2  # at most this fraction of a unit's thrust is made up for (keeps step 2 a contraction)
+LOSS_CAP = 0.2  # at most this fraction of a unit's thrust is made up for (T_cmd <= T / 0.8)
 
 
 def _correction(comp: TransientCompensator, rows, thrust_n, alpha_rad, beta_rad) -> np.ndarray:
-    """The compensated part of the transient of row outputs `rows` (k x 5) at thrust T, angles a, b.
+    """The part of the transient of row outputs `rows` (k x 5) at thrust T, angles a, b that is
+    taken out of the demand before allocation: the lateral rows F1y, M1z, F2z at weights w1, w2,
+    w4, on the axes of LATERAL_AXES only (not yaw), as a spec-4.1 wrench (`rows_wrench`).
 
-    axial: rows F1x, F2x at weights w0, w3 with the loss fraction gain (w0 F1x + w3 F2x) capped
-    at LOSS_CAP; lateral: rows F1y, M1z, F2z at weights w1, w2, w4, on the axes of LATERAL_AXES
-    only (not yaw). Both as spec 4.1 wrenches (`rows_wrench`).
+    The axial rows are not here: their loss is made up per unit by thrust after the plan
+    (`_make_up`), never handed to the allocator as a wrench (see allocate_compensated).
     """
     w = comp.row_weights
-    rows = np.array(rows, dtype=np.float64)
-    ax_rows = rows.copy()
-    if comp.gain > 0.0:
-        loss = comp.gain * (w[0] * rows[:, 0] + w[3] * rows[:, 3])
-        scale = np.where(loss > LOSS_CAP, LOSS_CAP / np.where(loss > 0, loss, 1.0), 1.0)
-        ax_rows[:, 0] *= scale
-        ax_rows[:, 3] *= scale
-    axial = comp.rows_wrench(ax_rows, thrust_n, alpha_rad, beta_rad, weights=(w[0], 0.0, 0.0, w[3], 0.0))
     lateral = comp.rows_wrench(rows, thrust_n, alpha_rad, beta_rad, weights=(0.0, w[1], w[2], 0.0, w[4]))
-    return axial + np.asarray(LATERAL_AXES) * lateral
+    return lateral * _LATERAL_AXES
+
+
+_LATERAL_AXES = np.asarray(LATERAL_AXES, dtype=float)
+
+
+def make_up_thrust(thrust_n, rows, gain: float, weights=COMPENSATED_ROWS, loss_cap: float = LOSS_CAP) -> np.ndarray:
+    """Thrust to command so that, after the seed-004 axial loss of `rows`, each unit gives thrust_n.
+
+    Spec 4.1: a unit commanded to T gives T (1 - L) along its own d, L = gain (F1x + F2x) (the rows'
+    step means; g = gain T). The compensated loss is L = gain (w0 F1x + w3 F2x), capped at
+    loss_cap, so T_cmd = T / (1 - L): the same direction, only more speed (L < 0, a gain, asks
+    for less). Pure math; units at T <= 0 stay at 0.
+    """
+    w = np.asarray(weights, dtype=float)
+    r = np.asarray(rows, dtype=float)
+    loss = np.minimum(gain * (w[0] * r[:, 0] + w[3] * r[:, 3]), loss_cap)
+    return np.maximum(np.asarray(thrust_n, float), 0.0) / (1.0 - loss)
+
+
+def yaw_balanced_make_up(grow_n, room_n, yaw_lever_m) -> np.ndarray:
+    """Thrust increments (k) to command: each unit's make-up `grow_n` within its headroom `room_n`
+    (T_max(J) - T), then, if some unit ran out of room, the make-up of units on the other side of
+    the yaw axis cut so that what is left undone has no yaw moment.
+
+    Left undone r_i = grow_i - dT_i along d_i has yaw sum(r_i l_i), l_i = (r_i x d_i)_z the
+    unit's yaw lever. A unit at full speed while the others make up in full would leave its own
+    loss alone: a lopsided force whose yaw moment (measured, sway +-0.3 m/s, jets at n_max 4 %
+    of the time: yaw disturbance x1.35) the heading loop then chases. Units with l_j of the
+    other sign give up the fraction f of their make-up with f sum(dT_j |l_j|) = |sum(r_i l_i)|,
+    f <= 1. Only yaw is balanced: the rest of the remainder is a small force the position loop
+    takes (a common share for all units instead costs the yaw-reversal flight its position
+    gain: 0.173 -> 0.078 m instead of 0.02 m).
+    """
+    grow = np.asarray(grow_n, float)
+    lever = np.asarray(yaw_lever_m, float)
+    dT = np.where(grow > 0.0, np.minimum(grow, np.maximum(np.asarray(room_n, float), 0.0)), grow)
+    n_left = float(np.sum((grow - dT) * lever))
+    if n_left != 0.0:
+        other = (dT > 0.0) & (lever * n_left < 0.0)
+        cap = float(np.sum(dT[other] * np.abs(lever[other])))
+        if cap > 0.0:
+            dT = np.where(other, dT * (1.0 - min(1.0, abs(n_left) / cap)), dT)
+    return dT
+
+
+def _make_up(allocator, comp: TransientCompensator, alloc: Allocation, pred: TransientPrediction, nu_r):
+    """The plan with each unit's axial loss made up by its own speed, at the planned joint angles.
+
+    Returns (allocation sent, prediction of it, axial wrench c_ax taken out of the demand). The
+    speed of T_cmd (`make_up_thrust`) from the inverse of seed-000 eq. 15 at the unit's axial
+    inflow (`JetGeometry.speed`), over its efficiency, at most n_max: a unit without headroom makes up
+    only what it has left, and nothing is re-vectored for it. c_ax = (T_sent - T_plan) d per unit
+    (minus what the jets add), so jets = plan + (-c_ax): the jets deliver demand - c, c = c_lat + c_ax.
+    """
+    if not comp.active or comp.gain == 0.0:
+        return alloc, pred, np.zeros(6)
+    geo = comp.geo
+    a, b = np.asarray(alloc.alpha_rad, float), np.asarray(alloc.beta_rad, float)
+    nu = np.zeros(6) if nu_r is None else np.asarray(nu_r, float)
+    if not np.all(np.isfinite(nu)):
+        nu = np.zeros(6)
+    eff = np.asarray(getattr(allocator, "efficiency", np.ones(comp.k)), float)
+    n_plan = np.asarray(alloc.n_rev_s, float)
+    T_plan = np.asarray(alloc.thrust_n, float)
+    t_cmd = make_up_thrust(T_plan, pred.rows, comp.gain, comp.row_weights)
+    v_axial = geo.axial_inflow(nu, a, b)
+    d, _, _ = geo.frames(a, b)
+    lever = geo.position[:, 0] * d[:, 1] - geo.position[:, 1] * d[:, 0]
+    t_cmd = T_plan + yaw_balanced_make_up(t_cmd - T_plan, geo.thrust_max(v_axial, eff) - T_plan, lever)
+    n_true = geo.speed(t_cmd, v_axial)
+    live = (eff > 0.0) & (T_plan > 0.0) & np.isfinite(n_true)
+    n = np.where(live, np.minimum(n_true / np.where(live, eff, 1.0), geo.n_max), n_plan)
+    W = getattr(allocator, "W", None)
+    W = np.eye(6) if W is None else W
+    T, force, achieved, _, _ = alloc_outcome(n, a, b, nu, geo.position, geo.e1, geo.tp, np.zeros(6), W, eff)
+    axial = np.asarray(alloc.wrench_achieved, float) - achieved  # c_ax: minus what the make-up adds
+    tau_jets = np.asarray(alloc.wrench_demand, float) - axial
+    res = achieved - tau_jets
+    err = float(np.sqrt(res @ W @ res))
+    sent = replace(alloc, n_rev_s=_read_only(n), thrust_n=_read_only(T), force_body_n=_read_only(force),
+                   wrench_demand=_read_only(tau_jets), wrench_achieved=_read_only(achieved),
+                   residual_wrench=_read_only(res), weighted_error=err)
+    pred = comp._predict(pred.alpha_rate_rad_s, pred.beta_rate_rad_s, T, comp.alpha, comp.beta,
+                         pred.next_alpha_rad, pred.next_beta_rad)
+    return sent, pred, axial
+
+
+def _read_only(x) -> np.ndarray:
+    x = np.array(x, dtype=float)
+    x.setflags(write=False)
+    return x
 
 
 __all__ = [
     "ROWS",
     "COMPENSATED_ROWS",
     "LOSS_CAP",
+    "make_up_thrust",
+    "yaw_balanced_make_up",
     "REPLAN_TOL_N",
     "LATERAL_AXES",
     "discretise_row",

@@ -22,7 +22,9 @@ from onboard.compensation import (
     azimuth_yaw_map,
     compensate,
     discretise_row,
+    make_up_thrust,
     servo_motion,
+    yaw_balanced_make_up,
 )
 
 DT = 0.01
@@ -167,7 +169,11 @@ def test_compensated_allocation_cancels_its_share_of_the_transient_while_re_vect
     """A demand that swings the jets: with compensation the jets deliver demand - c (c: the
     compensated share of the plan's transient, `correction_n`) wherever the demand is reachable,
     and jets + the full transient are closer to the demand than without compensation; what is
-    left is the share deliberately not cancelled (half the lateral forces, their yaw moment, M1z)."""
+    left is the share deliberately not cancelled (half the lateral forces, their yaw moment, M1z).
+    The axial loss is made up by speed only (`_make_up`), so near full speed (83.3 rev/s here at
+    s = 4) c is what the units' headroom allows, not a re-vectoring for it: measured c 0.16-0.33,
+    jets + transient 0.70-0.89 of the uncompensated error (0.57-0.71 when the QP re-vectored for
+    the make-up, which in closed loop fed F1x into a 9 Hz limit cycle)."""
     # a light change penalty: the allocation then follows the moving demand within a step, so
     # what is left is the transient (the default's smoother, lagging plan would blur the figure)
     cfg = AllocationConfig.from_vehicle(vehicle, change_weight=1e-2, time_budget_s=1.0)
@@ -189,12 +195,64 @@ def test_compensated_allocation_cancels_its_share_of_the_transient_while_re_vect
         err_u = plain.wrench_achieved + pred_u.wrench_n - demand
         if s >= 4:  # once the elevations are tilted up the demand is reachable
             assert norm(err_u) > 0.2  # the transient is there to be compensated
-            assert norm(res.correction_n) > 0.2
+            assert norm(res.correction_n) > 0.1
             assert norm(res.allocation.wrench_achieved + res.correction_n - demand) < 0.05 * norm(err_u)
-            assert norm(err_c) < 0.75 * norm(err_u)
+            assert norm(err_c) < 0.95 * norm(err_u)
             checked += 1
     assert checked == 6
 
+
+def test_make_up_thrust_is_the_inverse_of_the_spec_axial_loss():
+    """Spec 4.1: commanded T gives T (1 - L) along d, L = gain (w0 F1x + w3 F2x). So T / (1 - L)
+    gives T; L is capped at 0.2 (T / 0.8 at most); a negative L (a gain) asks for less."""
+    gain = 0.05
+    rows = np.array([[2.0, 9.0, 9.0, 1.0, 9.0],    # L = 0.05 * 3 = 0.15
+                     [4.0, 0.0, 0.0, 2.0, 0.0],    # L = 0.3 -> capped at 0.2
+                     [-1.0, 0.0, 0.0, -1.0, 0.0],  # L = -0.1
+                     [2.0, 0.0, 0.0, 1.0, 0.0]])   # T = 0 stays 0
+    T = np.array([2.0, 3.0, 1.1, 0.0])
+    t_cmd = make_up_thrust(T, rows, gain)
+    np.testing.assert_allclose(t_cmd, [2.0 / 0.85, 3.0 / 0.8, 1.1 / 1.1, 0.0], rtol=1e-12)
+    np.testing.assert_allclose(t_cmd * (1 - np.array([0.15, 0.2, -0.1, 0.15])), [2.0, 3.0, 1.1, 0.0], rtol=1e-12)
+    half = make_up_thrust(T, rows, gain, weights=(0.5, 1.0, 1.0, 0.0, 1.0))  # L = 0.05 * 1 = 0.05
+    assert half[0] == pytest.approx(2.0 / 0.95, rel=1e-12)
+
+
+def test_make_up_short_of_headroom_leaves_no_yaw():
+    """Units 0..3 with yaw levers l = (0.1, -0.1, 0.1, -0.2) m want 0.4 N each; unit 0 has only
+    0.1 N of room. Left undone: 0.3 N on l = +0.1, yaw 0.03 N m. The units with l < 0 (1 and 3:
+    0.4 * 0.1 + 0.4 * 0.2 = 0.12 N m of make-up yaw) give up 0.03 / 0.12 = 1/4 of theirs;
+    unit 2 (same side as unit 0) keeps all. Then what is left undone has no yaw."""
+    grow = np.array([0.4, 0.4, 0.4, 0.4])
+    room = np.array([0.1, 5.0, 5.0, 5.0])
+    lever = np.array([0.1, -0.1, 0.1, -0.2])
+    dT = yaw_balanced_make_up(grow, room, lever)
+    np.testing.assert_allclose(dT, [0.1, 0.3, 0.4, 0.3], rtol=1e-12)
+    assert np.sum((grow - dT) * lever) == pytest.approx(0.0, abs=1e-15)
+    # room everywhere: all made up; a gain (negative make-up) is always taken; no room at all: none
+    np.testing.assert_allclose(yaw_balanced_make_up(grow, np.full(4, 1.0), lever), grow)
+    np.testing.assert_allclose(yaw_balanced_make_up(-grow, np.zeros(4), lever), -grow)
+    np.testing.assert_allclose(yaw_balanced_make_up(grow, np.zeros(4), lever), np.zeros(4))
+
+
+def test_the_axial_loss_is_made_up_by_speed_at_the_planned_angles(vehicle):
+    """The plan sent has the QP's joint angles and, per unit, the thrust T_plan / (1 - L) where
+    there is room (`make_up_thrust` of the returned prediction's rows), so jets minus the
+    predicted axial loss give the QP's plan: no re-vectoring for the make-up."""
+    cfg = AllocationConfig.from_vehicle(vehicle, time_budget_s=1.0)
+    qp, comp = QpAllocator(vehicle, DT, cfg), TransientCompensator(vehicle, DT)
+    checked = 0
+    for s in range(80):
+        demand = np.array([1.0 * np.sin(s / 4), 0.5 * np.cos(s / 3), 1.5, 0.0, 0.0, 0.05 * np.sin(s / 5)])
+        res = allocate_compensated(qp, comp, demand)
+        plan, sent = qp.previous, res.allocation
+        np.testing.assert_array_equal(sent.alpha_rad, plan.alpha_rad)
+        np.testing.assert_array_equal(sent.beta_rad, plan.beta_rad)
+        loss = np.minimum(comp.gain * (res.prediction.rows[:, 0] + res.prediction.rows[:, 3]), 0.2)
+        if np.all(sent.n_rev_s < vehicle.thruster.n_max - 1e-6) and np.max(np.abs(loss)) > 1e-3:
+            np.testing.assert_allclose(sent.thrust_n * (1 - loss), plan.thrust_n, rtol=1e-9, atol=1e-12)
+            checked += 1
+    assert checked >= 10
 
 def test_free_response_is_what_the_committed_motion_leaves(vehicle):
     """ZOH and strictly proper rows (Dd = 0): the step-mean rows of any plan are the free response
