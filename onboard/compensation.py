@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from numba import njit
@@ -40,6 +41,7 @@ from . import model
 from .jit import MODEL_SOURCE, key_caches_on
 from .allocation import Allocation, JetGeometry
 from .allocation import outcome as alloc_outcome
+from .allocation import _speed1, axial_inflow, jet_frames, thrust_of_speed
 from .vehicle import Vehicle
 
 ROWS = model.TRANSIENT_ROWS  # ("f1x", "f1y", "m1z", "f2x", "f2z")
@@ -233,10 +235,14 @@ class TransientCompensator:
         self._C_free = 0.5 * (self.Cd + np.einsum("rj,rjm->rm", self.Cd, self.Ad))  # (5, 4)
         s = v.servo
         self.servo = (s.time_constant, s.rate_limit, s.angle_limit)
+        self._zeros6, self._ones, self._eye6 = np.zeros(6), np.ones(self.k), np.eye(6)
         self.reset(alpha_rad, beta_rad)
         z = np.zeros(self.k)
         self.predict(z, z, z)  # loads the compiled kernels now rather than in the first step
         self.rows_wrench(np.zeros((self.k, len(ROWS))), z)
+        ro = _read_only(z)  # the allocator's plans are read-only arrays: that kind of signature
+        _make_up_speeds(ro, ro, np.zeros((self.k, len(ROWS))), 0.0, 1.0, 1.0, LOSS_CAP, ro, ro, self._zeros6,
+                        self.geo.position, self.geo.e1, self.geo.tp, self._ones)
 
     def reset(self, alpha_rad=None, beta_rad=None) -> None:
         """Zero the filters (spec 6: transient states start at zero) and set the joint estimates."""
@@ -471,38 +477,86 @@ def yaw_balanced_make_up(grow_n, room_n, yaw_lever_m) -> np.ndarray:
     return dT
 
 
+@njit(cache=True)
+def _make_up_speeds(n_plan, T_plan, rows, gain, w0, w3, loss_cap, alpha, beta, nu, pos, e1, tp, eff):
+    """Commanded speeds of `_make_up` in one compiled call: `make_up_thrust`, the units' T_max(J)
+    = T(eff n_max, V_a) (seed 000 eq. 15 at their axial inflow V_a), `yaw_balanced_make_up`, and
+    n = (inverse of eq. 15 at V_a) / eff, at most n_max; a dead or idle unit keeps its speed."""
+    k = n_plan.shape[0]
+    F = jet_frames(alpha, beta, e1)
+    va = axial_inflow(nu, pos, F)
+    n_top = np.empty(k)
+    for i in range(k):
+        n_top[i] = tp[7] * eff[i]
+    t_max = thrust_of_speed(n_top, va, tp)
+    grow = np.empty(k)
+    room = np.empty(k)
+    lever = np.empty(k)
+    for i in range(k):
+        T = max(T_plan[i], 0.0)
+        loss = min(gain * (w0 * rows[i, 0] + w3 * rows[i, 3]), loss_cap)
+        grow[i] = T / (1.0 - loss) - T
+        room[i] = max(t_max[i], 0.0) - T
+        lever[i] = pos[i, 0] * F[i, 0, 1] - pos[i, 1] * F[i, 0, 0]
+    dT = _balance(grow, room, lever)
+    n = np.empty(k)
+    for i in range(k):
+        n[i] = n_plan[i]
+        if eff[i] > 0.0 and T_plan[i] > 0.0:
+            nt = _speed1(T_plan[i] + dT[i], va[i], tp) / eff[i]
+            if math.isfinite(nt):
+                n[i] = min(nt, tp[7])
+    return n
+
+
+@njit(cache=True)
+def _balance(grow, room, lever):
+    k = grow.shape[0]
+    dT = np.empty(k)
+    n_left = 0.0
+    for i in range(k):
+        dT[i] = min(grow[i], max(room[i], 0.0)) if grow[i] > 0.0 else grow[i]
+        n_left += (grow[i] - dT[i]) * lever[i]
+    if n_left != 0.0:
+        cap = 0.0
+        for i in range(k):
+            if dT[i] > 0.0 and lever[i] * n_left < 0.0:
+                cap += dT[i] * abs(lever[i])
+        if cap > 0.0:
+            f = min(1.0, abs(n_left) / cap)
+            for i in range(k):
+                if dT[i] > 0.0 and lever[i] * n_left < 0.0:
+                    dT[i] *= 1.0 - f
+    return dT
+
+
 def _make_up(allocator, comp: TransientCompensator, alloc: Allocation, pred: TransientPrediction, nu_r):
     """The plan with each unit's axial loss made up by its own speed, at the planned joint angles.
 
     Returns (allocation sent, prediction of it, axial wrench c_ax taken out of the demand). The
     speed of T_cmd (`make_up_thrust`) from the inverse of seed-000 eq. 15 at the unit's axial
-    inflow (`JetGeometry.speed`), over its efficiency, at most n_max: a unit without headroom makes up
-    only what it has left, and nothing is re-vectored for it. c_ax = (T_sent - T_plan) d per unit
-    (minus what the jets add), so jets = plan + (-c_ax): the jets deliver demand - c, c = c_lat + c_ax.
+    inflow, over its efficiency, at most n_max: a unit without headroom makes up only what it
+    has left (`yaw_balanced_make_up`), and nothing is re-vectored for it (`_make_up_speeds`).
+    c_ax = jets(plan) - jets(sent), so the jets deliver demand - c, c = c_lat + c_ax.
     """
     if not comp.active or comp.gain == 0.0:
         return alloc, pred, np.zeros(6)
     geo = comp.geo
-    a, b = np.asarray(alloc.alpha_rad, float), np.asarray(alloc.beta_rad, float)
-    nu = np.zeros(6) if nu_r is None else np.asarray(nu_r, float)
-    if not np.all(np.isfinite(nu)):
-        nu = np.zeros(6)
-    eff = np.asarray(getattr(allocator, "efficiency", np.ones(comp.k)), float)
-    n_plan = np.asarray(alloc.n_rev_s, float)
-    T_plan = np.asarray(alloc.thrust_n, float)
-    t_cmd = make_up_thrust(T_plan, pred.rows, comp.gain, comp.row_weights)
-    v_axial = geo.axial_inflow(nu, a, b)
-    d, _, _ = geo.frames(a, b)
-    lever = geo.position[:, 0] * d[:, 1] - geo.position[:, 1] * d[:, 0]
-    t_cmd = T_plan + yaw_balanced_make_up(t_cmd - T_plan, geo.thrust_max(v_axial, eff) - T_plan, lever)
-    n_true = geo.speed(t_cmd, v_axial)
-    live = (eff > 0.0) & (T_plan > 0.0) & np.isfinite(n_true)
-    n = np.where(live, np.minimum(n_true / np.where(live, eff, 1.0), geo.n_max), n_plan)
+    a, b = alloc.alpha_rad, alloc.beta_rad
+    nu = comp._zeros6 if nu_r is None else np.asarray(nu_r, dtype=np.float64)
+    if not (nu.shape == (6,) and np.isfinite(nu).all()):
+        nu = comp._zeros6
+    eff = getattr(allocator, "efficiency", None)
+    eff = comp._ones if eff is None else eff
+    w = comp.row_weights
+    n = _make_up_speeds(alloc.n_rev_s, alloc.thrust_n, pred.rows, comp.gain, w[0], w[3], LOSS_CAP, a, b, nu,
+                        geo.position, geo.e1, geo.tp, eff)
     W = getattr(allocator, "W", None)
-    W = np.eye(6) if W is None else W
-    T, force, achieved, _, _ = alloc_outcome(n, a, b, nu, geo.position, geo.e1, geo.tp, np.zeros(6), W, eff)
-    axial = np.asarray(alloc.wrench_achieved, float) - achieved  # c_ax: minus what the make-up adds
-    tau_jets = np.asarray(alloc.wrench_demand, float) - axial
+    W = comp._eye6 if W is None else W
+    tau_qp = alloc.wrench_demand
+    T, force, achieved, _, _ = alloc_outcome(n, a, b, nu, geo.position, geo.e1, geo.tp, tau_qp, W, eff)
+    axial = alloc.wrench_achieved - achieved  # c_ax: minus what the make-up adds
+    tau_jets = tau_qp - axial
     res = achieved - tau_jets
     err = float(np.sqrt(res @ W @ res))
     sent = replace(alloc, n_rev_s=_read_only(n), thrust_n=_read_only(T), force_body_n=_read_only(force),
@@ -539,4 +593,4 @@ __all__ = [
 
 
 # Kernels above compile onboard.model functions into themselves: key their disk cache on it.
-key_caches_on(globals(), MODEL_SOURCE)
+key_caches_on(globals(), MODEL_SOURCE, Path(__file__).with_name("allocation.py"))
