@@ -191,6 +191,16 @@ def thrust_of_speed(n, v_axial, tp):
 
 
 @njit(cache=True)
+def max_thrust(v_axial, tp, eff):
+    """T_max(J) of each unit: T(eff_i n_max, V_a) (seed 000 eq. 15), a weak unit's top speed scaled."""
+    k = v_axial.shape[0]
+    n_top = np.empty(k)
+    for i in range(k):
+        n_top[i] = tp[7] * eff[i]
+    return thrust_of_speed(n_top, v_axial, tp)
+
+
+@njit(cache=True)
 def _speed1(T, Va, tp):
     """n >= 0 with T(n, V_a) = T: the inverse of eq. 15, closed form per regime of J.
 
@@ -268,10 +278,7 @@ def plan_step(tau, a0, b0, nu_r, pos, e1, tp, lim, step, BtW, wc, f_prev, q, l, 
     Va = axial_inflow(nu_r, pos, F)
     t_max = np.empty(k)
     win = np.empty((k, 4))
-    n_max = np.empty(k)
-    for i in range(k):
-        n_max[i] = tp[7] * eff[i]
-    tm = thrust_of_speed(n_max, Va, tp)
+    tm = max_thrust(Va, tp, eff)
     for i in range(k):
         t_max[i] = max(tm[i], 0.0)
         sa = step * free[i, 0]
@@ -389,10 +396,7 @@ def command_of_forces(f, a0, b0, win, nu_r, pos, e1, tp, lim, eff):
         b[i] = min(max(min(max(b[i], b0[i] + win[i, 2]), b0[i] + win[i, 3]), -lim), lim)
     F = jet_frames(a, b, e1)
     Va = axial_inflow(nu_r, pos, F)
-    n_max = np.empty(k)
-    for i in range(k):
-        n_max[i] = tp[7] * eff[i]
-    tm = thrust_of_speed(n_max, Va, tp)
+    tm = max_thrust(Va, tp, eff)
     T = np.empty(k)
     for i in range(k):
         t = f[i, 0] * F[i, 0, 0] + f[i, 1] * F[i, 0, 1] + f[i, 2] * F[i, 0, 2]
@@ -447,7 +451,7 @@ class JetGeometry:
         """T_max(J) = T(e n_max, V_a): the most a jet of efficiency e (default 1) gives against
         its axial inflow (>= 0)."""
         e = np.ones(self.k) if efficiency is None else np.asarray(efficiency, float)
-        return np.maximum(self.thrust(self.n_max * e, v_axial), 0.0)
+        return np.maximum(max_thrust(np.asarray(v_axial, float), self.tp, e), 0.0)
 
     def speed(self, thrust, v_axial) -> np.ndarray:
         """n with T(n, V_a) = thrust (inverse of seed 000 eq. 15, closed form)."""

@@ -23,7 +23,7 @@ motion already committed (the free response of the carried states, `free_rows`) 
 part of at most C Bd / 2 <= 0.041 row units per rad/s of the step's own rate: no algebraic loop
 and no fixed-point iteration over the plan (which formed a limit cycle at the joints' rate limit).
 Only the rows that can be cancelled without turning the joints for it are (COMPENSATED_ROWS:
-half the axial loss, by speed only; half the lateral force, not on yaw): cancelling the reaction
+the axial loss in full, by speed only; half the lateral force, not on yaw): cancelling the reaction
 moment or the lateral force by turning the azimuths excites them more than it cancels.
 """
 
@@ -40,8 +40,8 @@ from scipy.signal import cont2discrete, tf2ss
 from . import model
 from .jit import MODEL_SOURCE, key_caches_on
 from .allocation import Allocation, JetGeometry
-from .allocation import outcome as alloc_outcome
-from .allocation import _speed1, axial_inflow, jet_frames, thrust_of_speed
+from .allocation import _frozen, _owned, outcome as alloc_outcome
+from .allocation import _speed1, axial_inflow, jet_frames, max_thrust
 from .vehicle import Vehicle
 
 ROWS = model.TRANSIENT_ROWS  # ("f1x", "f1y", "m1z", "f2x", "f2z")
@@ -240,7 +240,7 @@ class TransientCompensator:
         z = np.zeros(self.k)
         self.predict(z, z, z)  # loads the compiled kernels now rather than in the first step
         self.rows_wrench(np.zeros((self.k, len(ROWS))), z)
-        ro = _read_only(z)  # the allocator's plans are read-only arrays: that kind of signature
+        ro = _frozen(z)  # the allocator's plans are read-only arrays: that kind of signature
         _make_up_speeds(ro, ro, np.zeros((self.k, len(ROWS))), 0.0, 1.0, 1.0, LOSS_CAP, ro, ro, self._zeros6,
                         self.geo.position, self.geo.e1, self.geo.tp, self._ones)
 
@@ -445,10 +445,17 @@ def make_up_thrust(thrust_n, rows, gain: float, weights=COMPENSATED_ROWS, loss_c
     loss_cap, so T_cmd = T / (1 - L): the same direction, only more speed (L < 0, a gain, asks
     for less). Pure math; units at T <= 0 stay at 0.
     """
-    w = np.asarray(weights, dtype=float)
-    r = np.asarray(rows, dtype=float)
-    loss = np.minimum(gain * (w[0] * r[:, 0] + w[3] * r[:, 3]), loss_cap)
-    return np.maximum(np.asarray(thrust_n, float), 0.0) / (1.0 - loss)
+    return _made_up(np.asarray(thrust_n, np.float64), np.asarray(rows, np.float64), float(gain),
+                    float(weights[0]), float(weights[3]), float(loss_cap))
+
+
+@njit(cache=True)
+def _made_up(T, rows, gain, w0, w3, loss_cap):
+    """`make_up_thrust` compiled (what `_make_up_speeds` calls)."""
+    out = np.empty(T.shape[0])
+    for i in range(T.shape[0]):
+        out[i] = max(T[i], 0.0) / (1.0 - min(gain * (w0 * rows[i, 0] + w3 * rows[i, 3]), loss_cap))
+    return out
 
 
 def yaw_balanced_make_up(grow_n, room_n, yaw_lever_m) -> np.ndarray:
@@ -462,19 +469,11 @@ def yaw_balanced_make_up(grow_n, room_n, yaw_lever_m) -> np.ndarray:
     of the time: yaw disturbance x1.35) the heading loop then chases. Units with l_j of the
     other sign give up the fraction f of their make-up with f sum(dT_j |l_j|) = |sum(r_i l_i)|,
     f <= 1. Only yaw is balanced: the rest of the remainder is a small force the position loop
-    takes (a common share for all units instead costs the yaw-reversal flight its position
-    gain: 0.173 -> 0.078 m instead of 0.02 m).
+    takes (a common share for all units instead was measured, while this was built, to cost the
+    yaw-reversal flight part of its position gain).
     """
-    grow = np.asarray(grow_n, float)
-    lever = np.asarray(yaw_lever_m, float)
-    dT = np.where(grow > 0.0, np.minimum(grow, np.maximum(np.asarray(room_n, float), 0.0)), grow)
-    n_left = float(np.sum((grow - dT) * lever))
-    if n_left != 0.0:
-        other = (dT > 0.0) & (lever * n_left < 0.0)
-        cap = float(np.sum(dT[other] * np.abs(lever[other])))
-        if cap > 0.0:
-            dT = np.where(other, dT * (1.0 - min(1.0, abs(n_left) / cap)), dT)
-    return dT
+    return _balance(np.asarray(grow_n, np.float64), np.asarray(room_n, np.float64),
+                    np.asarray(yaw_lever_m, np.float64))
 
 
 @njit(cache=True)
@@ -485,17 +484,13 @@ def _make_up_speeds(n_plan, T_plan, rows, gain, w0, w3, loss_cap, alpha, beta, n
     k = n_plan.shape[0]
     F = jet_frames(alpha, beta, e1)
     va = axial_inflow(nu, pos, F)
-    n_top = np.empty(k)
-    for i in range(k):
-        n_top[i] = tp[7] * eff[i]
-    t_max = thrust_of_speed(n_top, va, tp)
-    grow = np.empty(k)
+    t_max = max_thrust(va, tp, eff)
+    grow = _made_up(T_plan, rows, gain, w0, w3, loss_cap)
     room = np.empty(k)
     lever = np.empty(k)
     for i in range(k):
         T = max(T_plan[i], 0.0)
-        loss = min(gain * (w0 * rows[i, 0] + w3 * rows[i, 3]), loss_cap)
-        grow[i] = T / (1.0 - loss) - T
+        grow[i] -= T
         room[i] = max(t_max[i], 0.0) - T
         lever[i] = pos[i, 0] * F[i, 0, 1] - pos[i, 1] * F[i, 0, 0]
     dT = _balance(grow, room, lever)
@@ -556,21 +551,12 @@ def _make_up(allocator, comp: TransientCompensator, alloc: Allocation, pred: Tra
     tau_qp = alloc.wrench_demand
     T, force, achieved, _, _ = alloc_outcome(n, a, b, nu, geo.position, geo.e1, geo.tp, tau_qp, W, eff)
     axial = alloc.wrench_achieved - achieved  # c_ax: minus what the make-up adds
-    tau_jets = tau_qp - axial
-    res = achieved - tau_jets
-    err = float(np.sqrt(res @ W @ res))
-    sent = replace(alloc, n_rev_s=_read_only(n), thrust_n=_read_only(T), force_body_n=_read_only(force),
-                   wrench_demand=_read_only(tau_jets), wrench_achieved=_read_only(achieved),
-                   residual_wrench=_read_only(res), weighted_error=err)
     pred = comp._predict(pred.alpha_rate_rad_s, pred.beta_rate_rad_s, T, comp.alpha, comp.beta,
                          pred.next_alpha_rad, pred.next_beta_rad)
+    # against tau_qp - c_ax the sent command leaves the plan's own residual and weighted error
+    sent = replace(alloc, n_rev_s=_owned(n), thrust_n=_owned(T), force_body_n=_owned(force),
+                   wrench_demand=_owned(tau_qp - axial), wrench_achieved=_owned(achieved))
     return sent, pred, axial
-
-
-def _read_only(x) -> np.ndarray:
-    x = np.array(x, dtype=float)
-    x.setflags(write=False)
-    return x
 
 
 __all__ = [

@@ -113,11 +113,36 @@ def test_reference_mission_tracks_within_bounds():
 _REVECTORING: dict = {}
 
 
+def transient_disturbance(setpoints, duration_s: float, vehicle=V, reference: str | None = None) -> dict:
+    """What the seed-004 transients add to a flight: the RMS difference, in yaw (rad) and in
+    position (m), from t >= 4 s, between `vehicle` (transients on) and the reference vehicle with
+    `azimuth_transient` off (same controller, seed 5, same noise); without and with compensation.
+    The reference flight (compensation off) is flown once per `reference` name."""
+    def track(v, compensation):
+        r = run_closed_loop(v, setpoints, duration_s, seed=5, config=LoopConfig(compensation=compensation))
+        win = [s for s in r.truth if s.time_s >= 4.0]
+        return np.array([s.euler_rad[2] for s in win]), np.array([s.pos_ned_m for s in win])
+
+    key = ("reference", reference)
+    ref = _REVECTORING.get(key) if reference is not None else None
+    if ref is None:
+        ref = track(V.with_effects(azimuth_transient=False), False)
+        if reference is not None:
+            _REVECTORING[key] = ref
+    yaw0, pos0 = ref
+    out = {}
+    for name, compensation in (("plain", False), ("compensated", True)):
+        yaw, pos = track(vehicle, compensation)
+        out[name] = {
+            "yaw_rad": float(np.sqrt(np.mean(((yaw - yaw0 + np.pi) % (2 * np.pi) - np.pi) ** 2))),
+            "position_m": float(np.sqrt(np.mean(np.sum((pos - pos0) ** 2, axis=1)))),
+        }
+    return out
+
+
 def re_vectoring_disturbance(m1z: bool = True) -> dict:
-    """Yaw reversals of 90 deg every 1.5 s at 0.4 m swing the azimuths fast. The disturbance is what
-    the seed-004 transients add to the flight: the RMS difference, in yaw (rad) and in position (m),
-    between a plant with `azimuth_transient` on and the same plant with it off (same controller,
-    same seed, same noise); without and with compensation. Flown once, shared by the tests below.
+    """Yaw reversals of 90 deg every 1.5 s at 0.4 m swing the azimuths fast; their
+    `transient_disturbance`, flown once, shared by the tests below.
 
     m1z=False: the same, on a vehicle whose M1z row (the azimuth reaction moment) has K = 0 in
     plant and compensator alike, every other row as in the vehicle file: the diagnostic that
@@ -131,28 +156,10 @@ def re_vectoring_disturbance(m1z: bool = True) -> dict:
         legs.append(Leg(t, f"yaw{i}", yaw_rad=math.pi / 2 if i % 2 == 0 else 0.0, settle_s=0.0))
         t += 1.5
     mission = Mission(tuple(legs), duration_s=t)
-    sp = mission.setpoints()
     v = V
     if not m1z:
         v = V.with_values({"effects.azimuth_transient.m1z": [0.0, *V.effects.azimuth_transient.m1z[1:]]})
-
-    def fly(vehicle, compensation):
-        return run_closed_loop(vehicle, sp, mission.duration_s, seed=5, config=LoopConfig(compensation=compensation))
-
-    def track(r):
-        win = [s for s in r.truth if s.time_s >= 4.0]
-        return np.array([s.euler_rad[2] for s in win]), np.array([s.pos_ned_m for s in win])
-
-    if "reference" not in _REVECTORING:  # transients off: the same flight for both variants
-        _REVECTORING["reference"] = track(fly(V.with_effects(azimuth_transient=False), False))
-    yaw0, pos0 = _REVECTORING["reference"]
-    out = {}
-    for name, compensation in (("plain", False), ("compensated", True)):
-        yaw, pos = track(fly(v, compensation))
-        out[name] = {
-            "yaw_rad": float(np.sqrt(np.mean(((yaw - yaw0 + np.pi) % (2 * np.pi) - np.pi) ** 2))),
-            "position_m": float(np.sqrt(np.mean(np.sum((pos - pos0) ** 2, axis=1)))),
-        }
+    out = transient_disturbance(mission.setpoints(), mission.duration_s, v, reference="yaw reversals")
     _REVECTORING[key] = out
     return out
 
@@ -199,32 +206,15 @@ def test_compensation_halves_the_yaw_disturbance_of_fast_re_vectoring():
     assert d["compensated"]["yaw_rad"] <= 0.5 * d["plain"]["yaw_rad"], d
 
 
-
 def translation_disturbance(speed_m_s: float = 0.3, legs: int = 6, period_s: float = 1.5) -> dict:
-    """The same measure as `re_vectoring_disturbance` (seed 5; RMS yaw (rad) and position (m)
-    difference from t >= 4 s against the same flight with `azimuth_transient` off), for a
-    translation with heading held: body-velocity setpoint sway +-speed, alternating every
-    period_s from t = 4 s. Without and with compensation."""
+    """`transient_disturbance` of a translation with heading held: body-velocity setpoint sway
+    +-speed, alternating every period_s from t = 4 s."""
     sp = [(1.0, arm_command(True)), (0.5, depth_yaw_target(0.4, 0.0)), (0.5, body_velocity_target(0.0, 0.0))]
     t = 4.0
     for i in range(legs):
         sp.append((t, body_velocity_target(0.0, speed_m_s if i % 2 == 0 else -speed_m_s)))
         t += period_s
-
-    def track(vehicle, compensation):
-        r = run_closed_loop(vehicle, sp, t, seed=5, config=LoopConfig(compensation=compensation))
-        win = [s for s in r.truth if s.time_s >= 4.0]
-        return np.array([s.euler_rad[2] for s in win]), np.array([s.pos_ned_m for s in win])
-
-    yaw0, pos0 = track(V.with_effects(azimuth_transient=False), False)
-    out = {}
-    for name, compensation in (("plain", False), ("compensated", True)):
-        yaw, pos = track(V, compensation)
-        out[name] = {
-            "yaw_rad": float(np.sqrt(np.mean(((yaw - yaw0 + np.pi) % (2 * np.pi) - np.pi) ** 2))),
-            "position_m": float(np.sqrt(np.mean(np.sum((pos - pos0) ** 2, axis=1)))),
-        }
-    return out
+    return transient_disturbance(sp, t)
 
 
 @pytest.mark.slow
@@ -241,6 +231,7 @@ def test_compensation_does_not_destabilise_a_sway_translation():
     assert d["plain"]["yaw_rad"] > 0.001 and d["plain"]["position_m"] > 0.02, d  # the transients disturb it
     assert d["compensated"]["yaw_rad"] <= d["plain"]["yaw_rad"], d
     assert d["compensated"]["position_m"] <= 0.5 * d["plain"]["position_m"], d
+
 
 # -- the same loop over a serial line ------------------------------------------------------------
 

@@ -547,7 +547,9 @@ def test_thrust_at_the_joint_angles_of_a_yaw_turn_cannot_stand_in_for_the_azimut
     yaw) then make the best thrust-only answer to a pure yaw demand give under a tenth of it.
     """
     geo = JetGeometry(vehicle)
-    L = 0.11
+    L = float(np.hypot(*geo.position[0, :2]))  # the units' horizontal lever, e1 radial: 0.11 m
+    assert np.allclose(np.hypot(geo.position[:, 0], geo.position[:, 1]), L)
+    assert np.allclose(geo.e1[:, :2], geo.position[:, :2] / L, atol=1e-4)  # (e1 rounded to 5 digits)
     a, b = -0.17, -0.15
     k = vehicle.n_units
     E = geo.effectiveness(np.full(k, a), np.full(k, b))
