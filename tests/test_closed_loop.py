@@ -495,7 +495,11 @@ def test_real_time_mode_follows_the_wall_clock():
     assert wall >= 1.5 - 0.02  # paced, not as fast as possible
     assert ep.stats.periods == 150
     assert ep.stats.commands_applied >= 30  # the loop answered (how often depends on the machine)
-    assert loop.armed
+    # armed by the 0.5 s command, never refused; in real time a stall of this shared machine over the
+    # IMU timeout (0.3 s: the plant thread sent nothing) may have tripped the failsafe since, which is
+    # the loop doing its job (seen once in a full-suite run on 2 cores)
+    assert loop.stats.arm_refusals == 0, loop.fs_state
+    assert loop.armed or (loop.stats.failsafe_entries > 0 and "no IMU" in loop.fs_state.reason), loop.fs_state
 
 
 def test_the_recording_reads_as_the_vehicle_with_commands_at_their_times(dives):
