@@ -497,7 +497,7 @@ def test_real_time_mode_follows_the_wall_clock():
     assert ep.stats.commands_applied >= 30  # the loop answered (how often depends on the machine)
     # armed by the 0.5 s command, never refused; in real time a stall of this shared machine over the
     # IMU timeout (0.3 s: the plant thread sent nothing) may have tripped the failsafe since, which is
-    # the loop doing its job (seen once in a full-suite run on 2 cores)
+    # the loop doing its job (the likely cause of one failure in a full-suite run on 2 cores)
     assert loop.stats.arm_refusals == 0, loop.fs_state
     assert loop.armed or (loop.stats.failsafe_entries > 0 and "no IMU" in loop.fs_state.reason), loop.fs_state
 
