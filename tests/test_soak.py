@@ -159,17 +159,19 @@ def test_rss_of_this_process_is_positive_and_of_a_gone_process_is_minus_one():
 
 
 def test_proc_counters_see_page_faults_and_cpu_time_of_this_process():
+    import mmap
     import time
     c0 = soak.proc_counters()
-    n = 8 << 20  # 8 MB, written a byte a page: 2048 fresh pages, one minor fault each at least
-    b = bytearray(n)
-    for i in range(0, n, 4096):
-        b[i] = 1
+    n = 8 << 20  # 8 MB of a fresh anonymous mapping (not heap a long-lived process may have touched
+    with mmap.mmap(-1, n) as b:  # already), written a byte a page: 2048 minor faults
+        b.madvise(mmap.MADV_NOHUGEPAGE)  # 4 kB pages even where transparent huge pages are "always"
+        for i in range(0, n, mmap.PAGESIZE):
+            b[i] = 1
     t_end = time.process_time() + 0.2
     while time.process_time() < t_end:
         pass
     c1 = soak.proc_counters()
-    assert c1["minflt"] - c0["minflt"] >= n // 4096 // 2  # (bytearray's zeroed pages may be mapped lazily: half at least)
+    assert c1["minflt"] - c0["minflt"] >= n // mmap.PAGESIZE // 2  # half at least
     assert c1["cpu_s"] - c0["cpu_s"] >= 0.1  # clock ticks (10 ms): 0.2 s busy shows
     assert c1["majflt"] >= c0["majflt"] and c1["nivcsw"] >= c0["nivcsw"] and c1["steal_s"] >= c0["steal_s"] >= 0
     assert soak.proc_counters(2 ** 22 + 7) == {}
