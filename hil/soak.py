@@ -43,7 +43,7 @@ import numpy as np
 from hil.demo import DEMO_CONFIG, Leg, Mission, run_closed_loop
 from hil.endpoint import EndpointError
 from hil.faults import DepthJump, FaultPlan
-from onboard.loop import arm_command, body_velocity_target, depth_yaw_target
+from onboard.loop import Overrun, arm_command, body_velocity_target, depth_yaw_target
 from onboard.vehicle import Vehicle, load_vehicle
 
 MINUTE_S = 60.0
@@ -395,6 +395,29 @@ def rss_kb(pid: int | str = "self") -> int:
     return pages * os.sysconf("SC_PAGE_SIZE") // 1024
 
 
+def rss_by_kind_kb(pid: int | str = "self") -> dict:
+    """Resident kB of a process by kind of mapping (/proc/PID/smaps): "heap" (malloc's main arena,
+    the brk heap), "anon" (anonymous mappings: Python's object arenas, large numpy buffers, other
+    malloc arenas), "stack", "file" (code and data of modules and libraries); {} if gone. Where
+    memory growth lands says what grows: Python objects or numpy buffers (anon) or malloc's heap."""
+    out = {"heap": 0, "anon": 0, "stack": 0, "file": 0}
+    kind = "anon"
+    try:
+        with open(f"/proc/{pid}/smaps") as f:
+            for line in f:
+                head = line.split(None, 6)
+                if head and head[0].endswith(":"):
+                    if head[0] == "Rss:":
+                        out[kind] += int(head[1])
+                    continue
+                name = head[5].strip() if len(head) > 5 else ""  # a mapping line: address perms offset dev inode [name]
+                kind = ("heap" if name == "[heap]" else "stack" if name.startswith("[stack") else
+                        "file" if name.startswith("/") else "anon")
+    except (OSError, ValueError, IndexError):
+        return {}
+    return out
+
+
 def proc_counters(pid: int | str = "self") -> dict:
     """What the kernel says a process went through (cumulative): minor and major page faults,
     CPU time (s, user + system), involuntary context switches of its main thread (/proc/PID/stat
@@ -481,6 +504,7 @@ class Monitor:
         self.pids = {"plant": os.getpid()}
         self.samples: list = []  # (t_s, {party: rss_kb}): one a simulated minute, bounded by the duration
         self.counters: list = []  # (t_s, {party: proc_counters}), the same minutes
+        self.kinds: list = []  # (t_s, {party: rss_by_kind_kb}), the same minutes
         self.endpoint = None
         self.wall0 = None
         self.depth_max_m = -math.inf
@@ -504,6 +528,7 @@ class Monitor:
         rss = {who: rss_kb(pid) for who, pid in self.pids.items()}
         self.samples.append((t_s, rss))
         self.counters.append((t_s, {who: proc_counters(pid) for who, pid in self.pids.items()}))
+        self.kinds.append((t_s, {who: rss_by_kind_kb(pid) for who, pid in self.pids.items()}))
         return rss
 
     def __call__(self, ep) -> None:
@@ -586,10 +611,10 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
         "cpu_max_ms": ob["step_cpu_max_ms"], "cpu_p999_ms": ob["step_cpu_p999_ms"], "cpu_p99_ms": ob["step_cpu_p99_ms"],
         "cpu_median_ms": ob["step_cpu_median_ms"],
         "history_steps": ob["history_steps"],
-        "overruns": ob.get("overrun_log", []),  # the newest 100: (vehicle time s, wall ms, CPU ms, of it in the garbage collector ms)
+        "overruns": ob.get("overrun_log", []),  # the newest 100, onboard.loop.Overrun.as_dict()
     }
     # the minutes of those overruns against all minutes: page faults, preemption, stolen time
-    deadlines["overrun_minutes"] = minute_context([o[0] for o in deadlines["overruns"]], monitor.counters)
+    deadlines["overrun_minutes"] = minute_context([o["t_s"] for o in deadlines["overruns"]], monitor.counters)
     # memory
     parties = list(monitor.samples[0][1])
     ts = [t for t, _ in monitor.samples]
@@ -598,6 +623,10 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
         r = [s[who] for _, s in monitor.samples]
         memory[who] = {"rss_start_kb": r[0], "rss_after_warmup_kb": next((x for t, x in zip(ts, r) if t >= warmup_s), r[-1]),
                        "rss_end_kb": r[-1], "rss_max_kb": max(r), "growth_kb_per_h": growth_kb_per_h(ts, r, warmup_s)}
+        kinds = [(t, k[who]) for t, k in monitor.kinds if k.get(who)]
+        if kinds:  # where it grew: the growth of each kind of mapping, like the total's
+            memory[who]["growth_by_kind_kb_per_h"] = {
+                kind: growth_kb_per_h([t for t, _ in kinds], [k[kind] for _, k in kinds], warmup_s) for kind in kinds[0][1]}
     # packets: the plant endpoint's recording (what crossed its link: with link faults, a packet
     # the injector lost is counted in its stats, never recorded; a duplicate is recorded twice)
     plant_rec = scan_tlog(result.tlog)
@@ -720,12 +749,16 @@ def table(s: dict) -> str:
                      f"onboard page faults {om['minflt_median_hit']:.0f} ({om['minflt_median']:.0f}), "
                      f"preempted {om['nivcsw_median_hit']:.0f} ({om['nivcsw_median']:.0f}), "
                      f"machine steal {om['steal_s_median_hit']:.2f} s ({om['steal_s_median']:.2f} s)"))
+    for o in d["overruns"][-5:]:
+        rows.append(("", "  overrun", Overrun.from_dict(o).where()))
     for who in ("plant", "onboard", "recorder"):
         if who in m:
             x = m[who]
             rows.append(("memory" if who == "plant" else "", f"{who}: RSS start -> end",
                          f"{x['rss_start_kb'] / 1024:.1f} -> {x['rss_end_kb'] / 1024:.1f} MB, "
                          f"growth {x['growth_kb_per_h']:+.0f} kB/h after {m['warmup_s']:.0f} s"))
+            if x.get("growth_by_kind_kb_per_h"):
+                rows.append(("", "  growth by mapping", ", ".join(f"{k} {v:+.0f}" for k, v in x["growth_by_kind_kb_per_h"].items()) + " kB/h"))
     rows += [
         ("packets", "endpoint sent / in recording", f"{p['endpoint_sent']} / {p['endpoint_sent_recorded']}"),
         ("", "endpoint received / in recording", f"{p['endpoint_received']} / {p['endpoint_received_recorded']}"),

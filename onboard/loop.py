@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import gc
 import math
+import resource
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
@@ -233,6 +234,57 @@ class LoopConfig:
             raise ValueError(f"mode_at_start: expected one of {sorted(MODES)}, got {self.mode_at_start!r}")
 
 
+PHASES = ("estimate", "control", "allocate", "checks", "monitor")  # of a control step, in order (Overrun)
+
+
+@dataclass(frozen=True)
+class Overrun:
+    """One control step over the period in CPU time, with what is needed to say where it went: the
+    wall time of each phase (a NaN phase did not run: disarmed, or the step failed before it), the
+    thread's user and system CPU, page faults and context switches over the step
+    (getrusage(RUSAGE_THREAD)), the CPU in the garbage collector, and the samples the estimator fused."""
+
+    t_s: float
+    wall_ms: float
+    cpu_ms: float
+    gc_ms: float
+    user_ms: float
+    sys_ms: float
+    minflt: int
+    majflt: int
+    nvcsw: int  # voluntary context switches (the thread waited)
+    nivcsw: int  # involuntary (preempted)
+    estimate_ms: float  # fusing the queued samples (and predicting between them)
+    control_ms: float  # failsafe and controller
+    allocate_ms: float  # compensate and allocate (QP)
+    checks_ms: float  # limit checks and statistics
+    monitor_ms: float  # fault monitor
+    samples: int  # samples queued for the estimator
+
+    @classmethod
+    def of(cls, t, wall_s, cpu_s, gc_s, t0, marks, r0, r1, samples) -> "Overrun":
+        ends = [t0, *marks]
+        ph = [(b - a) * 1e3 for a, b in zip(ends, ends[1:])]  # NaN where a phase did not run
+        return cls(t, wall_s * 1e3, cpu_s * 1e3, gc_s * 1e3, (r1.ru_utime - r0.ru_utime) * 1e3,
+                   (r1.ru_stime - r0.ru_stime) * 1e3, r1.ru_minflt - r0.ru_minflt, r1.ru_majflt - r0.ru_majflt,
+                   r1.ru_nvcsw - r0.ru_nvcsw, r1.ru_nivcsw - r0.ru_nivcsw, *ph, samples)
+
+    def as_dict(self) -> dict:
+        return {k: (None if v != v else round(v, 4)) if isinstance(v, float) else v for k, v in self.__dict__.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Overrun":
+        return cls(**{k: math.nan if v is None else v for k, v in d.items()})
+
+    def where(self) -> str:
+        """The record in a line: CPU split, the longest phase, faults and switches."""
+        phases = {k[:-3]: v for k, v in self.__dict__.items() if k.endswith("_ms") and k[:-3] in PHASES and v == v}
+        top = max(phases, key=phases.get) if phases else "none"
+        return (f"t {self.t_s:.2f} s: CPU {self.cpu_ms:.1f} ms (user {self.user_ms:.1f}, system {self.sys_ms:.1f}, "
+                f"GC {self.gc_ms:.1f}), longest phase {top} {phases.get(top, math.nan):.1f} ms, "
+                f"{self.minflt} page faults, {self.nivcsw} preemptions, {self.samples} samples")
+
+
 @dataclass
 class LoopStats:
     steps: int = 0
@@ -253,7 +305,7 @@ class LoopStats:
     # Over the whole run (not only the history): steps whose compute time exceeded the control period
     overruns_wall: int = 0
     overruns_cpu: int = 0
-    overrun_log: deque = field(default_factory=lambda: deque(maxlen=100))  # the newest (t_s, wall_ms, cpu_ms, gc_ms) over in CPU time
+    overrun_log: deque = field(default_factory=lambda: deque(maxlen=100))  # the newest `Overrun`s (over in CPU time)
     security: SecurityCounts = field(default_factory=SecurityCounts)  # signing, foreign, envelope (onboard.signing)
 
     faults_seen: int = 0  # OR of every onboard.monitor.Fault flag ever raised
@@ -277,7 +329,7 @@ class LoopStats:
             "history_steps": int(st.size),  # the steps the percentiles and maxima cover (newest HISTORY)
             "overruns_wall": self.overruns_wall,
             "overruns_cpu": self.overruns_cpu,
-            "overrun_log": [tuple(round(x, 4) for x in e) for e in self.overrun_log],
+            "overrun_log": [e.as_dict() for e in self.overrun_log],
             "solve_median_us": float(np.median(qp)) if qp.size else float("nan"),
             "solve_p99_us": float(np.percentile(qp, 99)) if qp.size else float("nan"),
             "allocation_fallbacks": self.fallbacks,
@@ -351,6 +403,7 @@ class OnboardLoop:
         self.rates = StreamRates({**{n: config.telemetry_rate_hz for n in TELEMETRY_STREAMS},
                                   "SERVO_OUTPUT_RAW": config.control_rate_hz})  # the ground's copy
         self._queue: list = []  # (t, arrival order, kind, sample) awaiting the estimator
+        self._marks = [math.nan] * 5  # the control step's phase ends (perf_counter s), see Overrun
         self._order = 0
         self._imu_rank = len(IMU_RANK)
         self._last_imu_stamp = -math.inf  # the newest IMU's own time stamp (s)
@@ -613,7 +666,10 @@ class OnboardLoop:
         """One control period at clock time t: estimate, failsafe, control, compensate, allocate, send."""
         t0 = time.perf_counter()
         c0 = time.thread_time()
+        r0 = resource.getrusage(resource.RUSAGE_THREAD)
         gc0 = _gc_cpu_s[0]
+        queued = len(self._queue)
+        marks = self._marks
         failed = False
         try:
             est, command = self._compute(t)
@@ -628,10 +684,12 @@ class OnboardLoop:
                 self._next_error_text = t + 1.0
                 self._statustext(mavlink.MAV_SEVERITY_ERROR, f"step error: {exc}")  # jets safe
         self._was_enabled = self.armed and not failed
+        marks[3] = time.perf_counter()
         if self.monitor is not None:
             self._monitor_tick(t, command, est)
         self.command = command
-        elapsed = time.perf_counter() - t0
+        marks[4] = time.perf_counter()
+        elapsed = marks[4] - t0
         cpu_s = time.thread_time() - c0
         self.stats.step_cpu_s.append(cpu_s)
         self.stats.step_time_s.append(elapsed)
@@ -639,7 +697,8 @@ class OnboardLoop:
             self.stats.overruns_wall += 1
         if cpu_s > self.period_s:  # CPU time: this step's own work
             self.stats.overruns_cpu += 1
-            self.stats.overrun_log.append((t, elapsed * 1e3, cpu_s * 1e3, (_gc_cpu_s[0] - gc0) * 1e3))
+            self.stats.overrun_log.append(Overrun.of(t, elapsed, cpu_s, _gc_cpu_s[0] - gc0, t0, marks, r0,
+                                                     resource.getrusage(resource.RUSAGE_THREAD), queued))
         self.stats.steps += 1
         self.stats.commands.append((t, command.copy()))
         with self.link.batch():
@@ -653,7 +712,10 @@ class OnboardLoop:
 
     def _compute(self, t: float):
         """Estimate, failsafe, control, compensate, allocate: (estimate, command) for this tick."""
+        marks = self._marks  # wall clock at the end of each phase, for an overrun's record (Overrun)
+        marks[0] = marks[1] = marks[2] = marks[3] = math.nan
         self._run_estimator()
+        marks[0] = time.perf_counter()
         est = self.estimator.estimate
         was_failsafe = self.failsafe_active
         self.fs_state = self._fs.on_tick(self.fs_state, t, self.estimator.diverged,
@@ -674,6 +736,7 @@ class OnboardLoop:
             achieved = self.allocation.wrench_achieved if self.prediction is None else (
                 np.asarray(self.allocation.wrench_achieved) + self.prediction.wrench_n)
         self.demand = self.controller.step(est, self.setpoint, self.period_s, achieved=achieved).as_array()
+        marks[1] = time.perf_counter()
         if self.compensator is not None:
             res = self._allocate_compensated(self.allocator, self.compensator, self.demand, nu_r=est.nu,
                                              iterations=self.config.compensation_iterations)
@@ -681,6 +744,7 @@ class OnboardLoop:
         else:
             alloc = self.allocator.allocate(self.demand, nu_r=est.nu)
         self.allocation = alloc
+        marks[2] = time.perf_counter()
         command = np.asarray(alloc.command, dtype=float)
         self.stats.solve_time_s.append(alloc.solve_time_s)
         if math.isfinite(alloc.weighted_error):

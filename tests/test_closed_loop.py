@@ -426,6 +426,43 @@ def test_a_collaborator_that_raises_gives_safe_output_not_a_dead_loop(loop_pair)
     assert any("gains went missing" in x for x in texts)
 
 
+def test_an_overrun_is_recorded_with_the_phase_it_went_to(loop_pair):
+    """A control step over the period says where its time went: a controller that burns 15 ms of
+    CPU makes every armed step overrun, and each record puts it in the control phase, in user CPU."""
+    import time
+
+    from onboard.control import Controller
+    from onboard.link import Link
+    from onboard.loop import OnboardLoop, Overrun, VehicleClock
+
+    class Slow(Controller):
+        def step(self, *a, **k):
+            end = time.thread_time() + 0.015
+            while time.thread_time() < end:
+                pass
+            return super().step(*a, **k)
+
+    _, ground = loop_pair
+    link = Link(f"udpout:127.0.0.1:{ground.local_address[1]}")
+    loop = OnboardLoop(V, link, VehicleClock(), controller=Slow(V))
+    for k in range(5):
+        t = 0.01 * k
+        loop.handle(mav.MAVLink_highres_imu_message(int(t * 1e6), 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 63, 0))
+        if k == 1:
+            loop.handle(arm_command(True))
+        loop.step(t)
+    link.close()
+    log = loop.stats.summary()["overrun_log"]
+    assert loop.armed and loop.stats.overruns_cpu == 4 and len(log) == 4, log  # the disarmed first step was fast
+    for d in log:
+        o = Overrun.from_dict(d)
+        assert o.samples == 1 and o.control_ms >= 15.0 and o.cpu_ms >= 15.0, o
+        assert o.user_ms + o.sys_ms >= 10.0, o  # getrusage ticks are coarse; the thread's CPU is there
+        assert "longest phase control" in o.where(), o.where()
+        phases = o.estimate_ms + o.control_ms + o.allocate_ms + o.checks_ms + o.monitor_ms
+        assert phases == pytest.approx(o.wall_ms, abs=1e-3), o  # the phases tile the step (rounded to 0.1 us)
+
+
 def test_replaying_the_recording_reproduces_every_command(dives):
     """Replay code is live code: the plant's recording, fed to a fresh onboard loop through a
     `tlog:` link on the vehicle clock, makes it command exactly what the live loop commanded."""

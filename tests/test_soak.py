@@ -177,6 +177,21 @@ def test_proc_counters_see_page_faults_and_cpu_time_of_this_process():
     assert soak.proc_counters(2 ** 22 + 7) == {}
 
 
+def test_rss_by_kind_puts_a_fresh_anonymous_mapping_in_anon_and_sums_to_the_rss():
+    import mmap
+    k0 = soak.rss_by_kind_kb()
+    n = 8 << 20  # private, as malloc's and Python's own (a shared anonymous one is /dev/zero's: "file")
+    with mmap.mmap(-1, n, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS) as b:
+        b.madvise(mmap.MADV_NOHUGEPAGE)
+        for i in range(0, n, mmap.PAGESIZE):
+            b[i] = 1
+        k1, rss = soak.rss_by_kind_kb(), soak.rss_kb()
+    assert set(k1) == {"heap", "anon", "stack", "file"} and k1["file"] > 1000 and k1["stack"] > 0
+    assert k1["anon"] - k0["anon"] >= n // 1024 // 2  # half at least
+    assert abs(sum(k1.values()) - rss) <= 1024  # smaps and statm agree (the two reads are moments apart)
+    assert soak.rss_by_kind_kb(2 ** 22 + 7) == {}
+
+
 def test_minute_context_sets_the_overrun_minutes_beside_all_minutes():
     c = lambda f, n, st: {"onboard": {"minflt": f, "nivcsw": n, "steal_s": st}}  # noqa: E731
     # cumulative counters at 0, 60, 120, 180 s: per minute faults 10, 500, 20; steal 0, 3, 0
