@@ -196,11 +196,14 @@ class JsonSitlBackend:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.bind((host, port))
         sock.settimeout(idle_timeout_s)
+        buf = bytearray(65535)  # one receive buffer, not a 64 kB allocation per frame (onboard.link._Udp)
+        view = memoryview(buf)
         try:
             while (max_frames is None or self.frames < max_frames) and (
                     duration_s is None or self.time_s < duration_s - 1e-9):
                 try:
-                    data, addr = sock.recvfrom(65535)
+                    n, addr = sock.recvfrom_into(buf)
+                    data = bytes(view[:n])
                 except socket.timeout:
                     return
                 except OSError:

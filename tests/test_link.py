@@ -76,6 +76,19 @@ def test_udp_round_trip_and_reply_to_last_speaker(udp_pair):
     assert client.recv(0.05) is None
 
 
+def test_udp_datagrams_are_copied_out_of_the_one_receive_buffer(udp_pair):
+    """The transport receives every datagram into one buffer: what `read` returns must be a copy
+    at the datagram's size, not overwritten by the next one, and the largest datagram still fits."""
+    server, client = udp_pair
+    io = server._io
+    big = os.urandom(65507)  # the largest IPv4 UDP payload
+    for payload in (b"first", big, b"x"):
+        client.write_raw(payload)
+    got = [io.read(1.0) for _ in range(3)]
+    assert got == [b"first", big, b"x"]
+    assert all(type(g) is bytes for g in got)
+
+
 def test_sequence_numbers_advance_per_packet(udp_pair):
     server, client = udp_pair
     for _ in range(3):
