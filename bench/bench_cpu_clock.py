@@ -11,7 +11,8 @@ stolen time says the CPU clock counted the hypervisor's stall too.
 
 It prints the median, p99.9 and maximum of the repetition's CPU time, the repetitions over 5x
 the median, and of those how many had time stolen from their vCPU around them (the same window
-`hil.soak.stolen_around` gives a control step), beside the fraction of all repetitions with
+`hil.soak.stolen_around` gives a control step) and how many had enough stolen to make up their
+excess over the median (`hil.soak.stolen_explains`, the soak's test), beside the fraction of all repetitions with
 steal around them (the baseline: what chance alone would give). Not a timed test; CI does not
 run it. Load the machine to see more (e.g. the test suite in another shell).
 """
@@ -23,7 +24,7 @@ import os
 import statistics
 import time
 
-from hil.soak import StealClock
+from hil.soak import StealClock, stolen_explains
 
 
 def work(n: int) -> float:
@@ -71,6 +72,8 @@ def main(argv=None) -> int:
     around = lambda i: sum(stolen[max(i - 1, 0):i + 2])  # noqa: E731  (as hil.soak.stolen_around)
     with_steal = sum(1 for i in range(k) if around(i) > 0)
     over_steal = sum(1 for i in over if around(i) > 0)
+    tick_ms = 1000.0 / os.sysconf("SC_CLK_TCK")
+    made_up = sum(1 for i in over if stolen_explains(cpu_ms[i] - med, around(i), tick_ms))
     q = sorted(cpu_ms)
     print(f"vCPU {args.cpu}, {k} repetitions of the same work over {args.duration:.0f} s, "
           f"load average {os.getloadavg()[0]:.2f}")
@@ -79,7 +82,8 @@ def main(argv=None) -> int:
     print(f"repetitions over 5x the median: {len(over)}")
     if over:
         print(f"  with time stolen from the vCPU around them: {over_steal} of {len(over)} "
-              f"({100 * over_steal / len(over):.0f} %)")
+              f"({100 * over_steal / len(over):.0f} %); the excess made up by it "
+              f"(hil.soak.stolen_explains): {made_up} of {len(over)}")
     print(f"baseline, all repetitions with time stolen around them: {with_steal} of {k} ({100 * with_steal / k:.1f} %)")
     if over and with_steal:
         print(f"ratio: {over_steal / len(over) / (with_steal / k):.1f}x more often than chance")

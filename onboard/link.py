@@ -68,6 +68,11 @@ def parse_connection(text: str) -> Endpoint:
 
 
 MAX_DATAGRAM = 65535  # the largest UDP payload
+# The socket's receive buffer: a process descheduled for a second (a loaded or virtual machine:
+# `jetloop soak` saw the telemetry recorder lose 378 packets in minutes with 40 s of hypervisor
+# steal) overflows the default 208 kB, which holds about 200 small datagrams (each costs its
+# buffer ~1 kB of kernel memory).
+RECV_BUFFER_BYTES = 4 << 20
 
 
 class _Udp:
@@ -86,6 +91,10 @@ class _Udp:
         except OSError as exc:
             raise LinkError(f"link {ep.kind}:{ep.host}:{ep.port}: cannot open UDP socket: {exc.strerror or exc}") from exc
         self.sock.setblocking(False)
+        try:  # room for ~4000 small datagrams while this process is not scheduled (default ~200)
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
+        except OSError:
+            pass  # the kernel caps it at net.core.rmem_max; refusing it is not an error
         # Datagrams are received into one buffer and copied out at their size: recvfrom(65535)
         # mallocs 64 kB per datagram and shrinks it in place; small objects that settle in the
         # freed tails fragment malloc's heap, and a later 64 kB request then extends it (suspected
