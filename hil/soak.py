@@ -982,7 +982,7 @@ def configure(parser) -> None:
                         help="do not re-execute the CPU overruns from the recording afterwards (saves ~10 min an hour)")
     parser.add_argument("--retime", metavar="DIR", default=None,
                         help="only re-execute the CPU overruns of the soak in DIR (its summary.json and "
-                             "mission.tlog) and judge it again; fly nothing")
+                             "mission.tlog; give the --vehicle it flew) and judge it again; fly nothing")
 
 
 def run(args) -> int:
