@@ -313,6 +313,14 @@ def test_cli_refuses_bad_input_with_a_message(tmp_path, capsys):
     assert "missing.toml" in capsys.readouterr().err
     assert main(["soak", "--duration", "30", "--out", str(tmp_path)]) == 1  # no whole mission fits
     assert "holds no whole random mission" in capsys.readouterr().err
+    assert main(["soak", "--retime", str(tmp_path)]) == 2  # no summary.json there
+    assert "is not a finished soak" in capsys.readouterr().err
+    (tmp_path / "summary.json").write_text('{"deadlines": {"overruns": [{"t_s": 1.0}]}}')
+    assert main(["soak", "--retime", str(tmp_path)]) == 2  # and no mission.tlog
+    assert "mission.tlog: no such file" in capsys.readouterr().err
+    (tmp_path / "summary.json").write_text("{not json")
+    assert main(["soak", "--retime", str(tmp_path)]) == 2
+    assert "is not a finished soak" in capsys.readouterr().err
 
 
 def test_stolen_around_sums_the_steal_of_the_periods_around_each_step():
