@@ -525,7 +525,8 @@ def retime(vehicle: Vehicle, tlog: Path, times_s, say=None) -> dict:
     tests/test_closed_loop.py checks it reproduces every command), so the replayed step at t is
     the live step at t, computed again. A step whose live CPU time was over the period but whose
     replay, commanding the same, took a millisecond did not overrun by its own work: its CPU
-    clock counted something else (bench/bench_cpu_clock.py). Steps not found map to (nan, False)."""
+    clock counted something else (bench/bench_cpu_clock.py). Steps not found map to (nan, False),
+    and so do steps older than the replayed loop's step history (onboard.loop.HISTORY: an hour)."""
     from onboard.link import Link
     from onboard.loop import OnboardLoop, VehicleClock
     from onboard.pwm import command_to_normalised
