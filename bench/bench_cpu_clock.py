@@ -24,7 +24,7 @@ import os
 import statistics
 import time
 
-from hil.soak import StealClock, stolen_explains
+from hil.soak import StealClock, stolen_around, stolen_explains
 
 
 def work(n: int) -> float:
@@ -69,7 +69,8 @@ def main(argv=None) -> int:
     k = len(cpu_ms)
     med = statistics.median(cpu_ms)
     over = [i for i, c in enumerate(cpu_ms) if c > 5 * med]
-    around = lambda i: sum(stolen[max(i - 1, 0):i + 2])  # noqa: E731  (as hil.soak.stolen_around)
+    near = stolen_around(range(k), 1.0, stolen)  # repetition i as "period" i: the soak's window
+    around = near.__getitem__
     with_steal = sum(1 for i in range(k) if around(i) > 0)
     over_steal = sum(1 for i in over if around(i) > 0)
     tick_ms = 1000.0 / os.sysconf("SC_CLK_TCK")

@@ -278,7 +278,8 @@ class Overrun:
 
     def where(self) -> str:
         """The record in a line: CPU split, the longest phase, faults and switches."""
-        phases = {k[:-3]: v for k, v in self.__dict__.items() if k.endswith("_ms") and k[:-3] in PHASES and v == v}
+        ran = {p: getattr(self, p + "_ms") for p in PHASES}
+        phases = {p: v for p, v in ran.items() if v == v}  # NaN: the phase did not run
         top = max(phases, key=phases.get) if phases else "none"
         return (f"t {self.t_s:.2f} s: CPU {self.cpu_ms:.1f} ms (user {self.user_ms:.1f}, system {self.sys_ms:.1f}, "
                 f"GC {self.gc_ms:.1f}), longest phase {top} {phases.get(top, math.nan):.1f} ms, "
