@@ -183,6 +183,140 @@ def azimuth_yaw_map(v: Vehicle, unit: int = 0, beta_rad: float = 0.0):
     return num, den
 
 
+# -- the yaw reaction, cancelled ahead along the controller's own reference ------------------------
+
+PREVIEW_HORIZON_S = 0.4  # how far ahead the yaw correction plans (the RHP zeros' 1/|z| = 0.03 s, 13x)
+# weight of the correction's rate against the yaw error: J = int e^2 dt + MOVE_WEIGHT int c'^2 dt
+PREVIEW_MOVE_WEIGHT = 1e-6  # rad^2 per (N m/s)^2
+
+
+def yaw_loop_model(v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, damping_ratio: float):
+    """(A, b_ff, b_c, c_e) of the linearised yaw channel, discrete at dt_s (ZOH): the yaw error e
+    that the azimuths' transients leave when the controller asks the feed-forward moment N0 and a
+    correction c is added to the yaw demand:
+
+        e = W S ((D - 1) N0 + D c),   x' = A x + b_ff N0 + b_c c,   e = c_e x
+
+    D = `azimuth_yaw_map` / its DC gain (commanded -> made yaw moment, transients included, D(0) = 1;
+    the same for every unit and thrust), S = 1 / (tau s + 1) the servo lag, W = s / (I_z (s^3 +
+    2 z w s^2 + w^2 s + w^3 / 10) + d_r s^2) the closed yaw loop from a moment error to the yaw
+    error (onboard.control eq. 1, its yaw PID at bandwidth w, damping z; I_z = I_zz + N_r',
+    d_r the linear yaw damping). Realised block by block (a product of the polynomials, 12th
+    order, is too badly conditioned).
+    """
+    num, den = azimuth_yaw_map(v)
+    dc = np.polyval(num, 0.0) / np.polyval(den, 0.0)
+    aD, bD, cD, dD = tf2ss(num / dc, den)
+    nD = aD.shape[0]
+    tau = v.servo.time_constant
+    izz = v.body.inertia[2] + v.hydro.added_mass[5]
+    w, z = yaw_bandwidth_rad_s, damping_ratio
+    W_den = np.polyadd(izz * np.array([1.0, 2 * z * w, w * w, w ** 3 / 10]), [v.hydro.linear_damping[5], 0.0, 0.0])
+    aW, bW, cW, _ = tf2ss([1.0, 0.0], W_den)
+    n = nD + 1 + aW.shape[0]
+    A, B, C = np.zeros((n, n)), np.zeros((n, 2)), np.zeros((1, n))
+    A[:nD, :nD] = aD
+    B[:nD, 0] = B[:nD, 1] = bD[:, 0]  # D is driven by N0 + c
+    d = float(np.asarray(dD).item())
+    A[nD, :nD] = cD[0] / tau  # servo lag of D (N0 + c) - N0
+    A[nD, nD] = -1.0 / tau
+    B[nD, 0], B[nD, 1] = (d - 1.0) / tau, d / tau
+    A[nD + 1:, nD + 1:] = aW
+    A[nD + 1:, nD] = bW[:, 0]
+    C[0, nD + 1:] = cW[0]
+    Ad, Bd, Cd, _, _ = cont2discrete((A, B, C, np.zeros((1, 2))), dt_s, method="zoh")
+    return Ad, np.ascontiguousarray(Bd[:, 0]), np.ascontiguousarray(Bd[:, 1]), Cd.reshape(-1)
+
+
+@dataclass(frozen=True)
+class YawPreviewGains:
+    """c_k = kx x_k + kn N0[k:k+H] + kc c_(k-1): the first move of the least-squares plan over H steps.
+
+    Plan: min sum_(j=1..H) e_(k+j)^2 + lam sum_(j=0..H-1) (c_(k+j) - c_(k+j-1))^2, lam =
+    PREVIEW_MOVE_WEIGHT / dt^2 (the sums approximate the integrals of `PREVIEW_MOVE_WEIGHT`), on
+    `yaw_loop_model` from its state x_k, the feed-forward N0 of the next H steps known.
+    Unconstrained, so solved once: a receding-horizon plan that is a fixed linear filter.
+    """
+
+    A: np.ndarray
+    b_ff: np.ndarray
+    b_c: np.ndarray
+    kx: np.ndarray
+    kn: np.ndarray
+    kc: float
+    horizon: int
+
+
+def yaw_preview_gains(v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, damping_ratio: float,
+                      horizon_s: float = PREVIEW_HORIZON_S, move_weight: float = PREVIEW_MOVE_WEIGHT) -> YawPreviewGains:
+    """The `YawPreviewGains` of the vehicle's yaw channel at control period dt_s."""
+    A, b_ff, b_c, c_e = yaw_loop_model(v, dt_s, yaw_bandwidth_rad_s, damping_ratio)
+    H = max(int(round(horizon_s / dt_s)), 1)
+    nx = A.shape[0]
+    Phi = np.empty((H, nx))  # e_(k+j) = c A^j x + sum_(i<j) c A^(j-1-i) (b_ff N_i + b_c c_i)
+    h_ff, h_c = np.empty(H), np.empty(H)
+    M = np.eye(nx)
+    for j in range(H):
+        h_ff[j], h_c[j] = c_e @ M @ b_ff, c_e @ M @ b_c
+        M = A @ M
+        Phi[j] = c_e @ M
+    idx = np.arange(H)
+    lower = idx[:, None] - idx[None, :]
+    G_ff = np.where(lower >= 0, h_ff[np.clip(lower, 0, H - 1)], 0.0)
+    G_c = np.where(lower >= 0, h_c[np.clip(lower, 0, H - 1)], 0.0)
+    lam = move_weight / dt_s ** 2
+    Dm = np.eye(H) - np.eye(H, k=-1)
+    first = np.linalg.solve(G_c.T @ G_c + lam * Dm.T @ Dm, np.eye(H)[:, 0])  # row 0 of the inverse (symmetric)
+    return YawPreviewGains(
+        A=A, b_ff=b_ff, b_c=b_c, kx=-(first @ G_c.T) @ Phi, kn=-(first @ G_c.T) @ G_ff,
+        kc=float(lam * first @ Dm.T[:, 0]), horizon=H,
+    )
+
+
+class YawPreview:
+    """The correction of the yaw demand that cancels, ahead, what the azimuths' transients (the
+    M1z reaction above all) will do to the yaw of the moment the controller is about to ask.
+
+    Why ahead: the map from a commanded yaw moment to the moment the turning azimuths make has
+    right-half-plane zeros (`azimuth_yaw_map`: 21.4 +- 22.7j rad/s): a correction from the current
+    demand alone, or fed back from the predicted reaction, cannot cancel it (measured: chatter, or
+    a third at best); its inverse needs the demand's future. The controller's yaw reference is its
+    own filter, so that future is known (`Controller.yaw_preview`) until the setpoint changes.
+
+    `correction(n0_future)` -> c (N m, to add to the yaw demand); `commit(n0, c)` advances the model
+    with what this step asked. A fixed linear filter of the feed-forward (`YawPreviewGains`): it
+    reads no measurement, so it cannot destabilise the loop; the model's poles are the yaw loop's.
+    """
+
+    def __init__(self, v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, damping_ratio: float,
+                 horizon_s: float = PREVIEW_HORIZON_S, move_weight: float = PREVIEW_MOVE_WEIGHT):
+        self.gains = yaw_preview_gains(v, dt_s, yaw_bandwidth_rad_s, damping_ratio, horizon_s, move_weight)
+        self.horizon = self.gains.horizon
+        self.reset()
+
+    def reset(self) -> None:
+        self.x = np.zeros(self.gains.A.shape[0])
+        self.c = 0.0
+
+    def correction(self, n0_future) -> float:
+        """c for this step from the feed-forward of this step and the horizon - 1 after it."""
+        g = self.gains
+        n0 = np.asarray(n0_future, dtype=float)
+        if n0.shape != (self.horizon,) or not np.all(np.isfinite(n0)):
+            return 0.0
+        c = float(g.kx @ self.x + g.kn @ n0 + g.kc * self.c)
+        return c if math.isfinite(c) else 0.0
+
+    def commit(self, n0: float, c: float) -> None:
+        """This step asked the feed-forward n0 plus the correction c: advance the model."""
+        g = self.gains
+        if not (math.isfinite(n0) and math.isfinite(c)):
+            self.reset()
+            return
+        self.x = g.A @ self.x + g.b_ff * n0 + g.b_c * c
+        self.c = c
+
+
 @dataclass(frozen=True)
 class TransientPrediction:
     """Predicted transient over one control step (step means), per unit and summed.
@@ -575,6 +709,12 @@ __all__ = [
     "compensate",
     "CompensatedAllocation",
     "allocate_compensated",
+    "PREVIEW_HORIZON_S",
+    "PREVIEW_MOVE_WEIGHT",
+    "yaw_loop_model",
+    "YawPreviewGains",
+    "yaw_preview_gains",
+    "YawPreview",
 ]
 
 

@@ -215,6 +215,7 @@ class LoopConfig:
     qp_time_budget_s: float | None = None  # None: 1 ms in real time, unlimited in lock-step
     mode_at_start: str = "guided"
     compensation_iterations: int = 2
+    yaw_preview: bool = True  # with compensation: cancel the azimuths' yaw reaction ahead (YawPreview)
     allocation_change_weight: float | None = None  # None: the allocator's default (AllocationConfig)
     estimator_backend: str = "filterpy"  # or "compiled": the same EKF equations in numba (onboard.estimator)
     signing_key: bytes | None = None  # MAVLink 2 signing on: unsigned commands refused (ground.commands)
@@ -363,7 +364,7 @@ class OnboardLoop:
                  estimator=None, controller=None, warm_up: bool = True):
         from . import failsafe
         from .allocation import AllocationConfig, PseudoInverseAllocator, QpAllocator
-        from .compensation import TransientCompensator, allocate_compensated
+        from .compensation import TransientCompensator, YawPreview, allocate_compensated
         from .control import Controller
         from .estimator import Estimator
 
@@ -384,6 +385,12 @@ class OnboardLoop:
         self.allocator = cls(vehicle, self.period_s, alloc_cfg)
         self.compensator = TransientCompensator(vehicle, self.period_s) if config.compensation else None
         self._allocate_compensated = allocate_compensated  # imported here, not on every tick
+        # the yaw preview needs the controller's own reference (Controller.yaw_preview) and feed-forward
+        g = getattr(self.controller, "gains", None)
+        self.yaw_preview = None
+        if (config.yaw_preview and self.compensator is not None and self.compensator.active
+                and getattr(g, "feedforward", False) and hasattr(self.controller, "yaw_preview")):
+            self.yaw_preview = YawPreview(vehicle, self.period_s, g.yaw_bandwidth_rad_s, g.damping_ratio)
         self._fs = failsafe
         self.fs_state = failsafe.FailsafeState(imu_timeout_s=config.imu_timeout_s)
         self.setpoint = Setpoint()
@@ -732,6 +739,8 @@ class OnboardLoop:
             self.allocator.previous = None
             if self.compensator is not None:
                 self.compensator.reset()
+            if self.yaw_preview is not None:
+                self.yaw_preview.reset()
         achieved = None
         if self.allocation is not None and self._was_enabled:
             achieved = self.allocation.wrench_achieved if self.prediction is None else (
@@ -739,7 +748,14 @@ class OnboardLoop:
         self.demand = self.controller.step(est, self.setpoint, self.period_s, achieved=achieved).as_array()
         marks[1] = time.perf_counter()
         if self.compensator is not None:
-            res = self._allocate_compensated(self.allocator, self.compensator, self.demand, nu_r=est.nu,
+            tau = self.demand
+            if self.yaw_preview is not None:  # the reaction of what the yaw reference will ask, ahead
+                n0 = self.controller.yaw_preview(self.yaw_preview.horizon, self.period_s)
+                c = self.yaw_preview.correction(n0)
+                self.yaw_preview.commit(float(n0[0]), c)
+                tau = tau.copy()
+                tau[5] += c
+            res = self._allocate_compensated(self.allocator, self.compensator, tau, nu_r=est.nu,
                                              iterations=self.config.compensation_iterations)
             alloc, self.prediction = res.allocation, res.prediction
         else:

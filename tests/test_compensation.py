@@ -366,11 +366,11 @@ def test_azimuth_made_yaw_has_right_half_plane_zeros_set_by_the_m1z_mode(vehicle
 
 
 def test_a_planned_azimuth_trajectory_could_cut_the_reaction_yaw_error_but_a_reactive_one_cannot(vehicle):
-    """What is left for a model-predictive allocation (the measured reason the closed-loop yaw
-    criterion of fast re-vectoring is not met, tests/test_closed_loop.py).
+    """Open loop, the reaction moment of the azimuths can only be cancelled by a plan that knows
+    the demand ahead (what `YawPreview` does in closed loop; next test).
 
     Four units at thrust T turn their azimuths together to make a yaw moment step of 0.17 N m
-    (the re-vectoring test's reversals ask 0.077 kg m^2 * 2.26 rad/s^2). The plan a transient-free
+    (what a second-order yaw reference asked at a 90 deg reversal: 0.077 kg m^2 * 2.26 rad/s^2). The plan a transient-free
     plant needs, alpha = N / (4 T L) reached at the servo's speed (spec 4: first-order lag 30 ms,
     commands move at most rate_limit * dt a step), gives the body, through the seed-004 rows
     (`azimuth_yaw_map`, ZOH at 10 ms), a yaw-angle error (double integral of the moment error / I_z,
@@ -428,59 +428,49 @@ def test_a_planned_azimuth_trajectory_could_cut_the_reaction_yaw_error_but_a_rea
     assert float(np.sqrt(np.mean((angle @ (G @ react - N_target)) ** 2))) > 2 * rms_naive  # worse than none
 
 
-def test_in_closed_loop_only_preview_could_halve_the_reaction_yaw_of_a_reversal(vehicle):
-    """Why no per-step compensation meets the closed-loop yaw criterion of fast re-vectoring
-    (tests/test_closed_loop.py, strict xfail), where the open-loop study above looked hopeful.
+def test_the_yaw_preview_cancels_the_reaction_yaw_of_a_reversal_a_stepped_feedforward_could_not(vehicle):
+    """Why the closed-loop yaw criterion of fast re-vectoring (tests/test_closed_loop.py) needs the
+    third-order yaw reference and `YawPreview`, in the linearised yaw channel of that test,
+    discrete at 10 ms, built here independently of `yaw_loop_model` (transfer functions in series).
 
-    Linearised yaw channel of the re-vectoring test, discrete at 10 ms. The controller's reference
-    prefilter (onboard.control: psi_r'' = w_r^2 (psi_sp - psi_r) - 2 w_r psi_r', |psi_r'| <= 0.8)
-    turns a 90 deg setpoint step into the feedforward N0 = I_z psi_r'' + d_r psi_r' (a 0.17 N m step
-    at the reversal, then smooth). The jets make the commanded moment through the servo lag S
-    (30 ms) and the seed-004 rows: D = azimuth_yaw_map / L (D(0) = 1); the commanded moment moves
-    at most 4 T L rate_limit dt per step (T = 2.8 N per jet, as in the flight). The controller
-    (eq. 1: a = w^2 e + 2 z w e' + w^3/10 int e, times I_z) turns a moment error m into the yaw
-    error W m, W(s) = s / (I_z (s^3 + 2 z w s^2 + w^2 s + w^3 / 10) + d_r s^2). Plain:
-    e = W S (D - 1) N0. An additive correction c of the commanded moment gives
-    e = W S ((D - 1) N0 + D c). The best c, by bounded least squares (the rate bound on N0 + c),
-    with a perfect model and the whole future of N0 known:
-    - causal (c = 0 before the reversal: the setpoint is not known earlier): 4.7 -> 3.2 mrad RMS
-      over the 1.5 s after it, a third off, not half; at the jets' full thrust (4.31 N, 1.54 times
-      the slew) still 2.6 mrad. (Measured in this model: 2.4 at 5.6 N, 1.9 at 11.2 N.)
-    - with 0.2 s of preview (c may start before the reversal): 0.4 mrad.
-    The reaction of the azimuths turning for the step has to be anticipated (the anti-causal part
-    of the inverse of a map with right-half-plane zeros), and the 0.17 N m step already uses the
-    azimuths' whole rate for ~3 steps. Thrust at fixed joint angles cannot stand in (next test).
-    So no compensator that sees only the current demand can halve it; a mission-aware planner
-    with the setpoint ~0.2 s ahead could.
+    The jets make the commanded moment through the servo lag S (30 ms) and the seed-004 rows:
+    D = azimuth_yaw_map / L (D(0) = 1); the commanded moment moves at most 4 T L rate_limit dt per
+    step (T = 2.8 N per jet, as in the flight). The controller (eq. 1: a = w^2 e + 2 z w e' +
+    w^3/10 int e, times I_z) turns a moment error m into the yaw error W m, W(s) = s / (I_z (s^3 +
+    2 z w s^2 + w^2 s + w^3 / 10) + d_r s^2). Plain: e = W S (D - 1) N0 for the feed-forward N0;
+    a correction c of the commanded moment gives e = W S ((D - 1) N0 + D c).
+    - A second-order reference (the controller's until this test: psi_r'' = w_r^2 (psi_sp - psi_r)
+      - 2 w_r psi_r', w_r = 1.2) steps N0 by I_z w_r^2 pi/2 = 0.17 N m at a 90 deg reversal. The
+      best c (bounded least squares, the rate bound on N0 + c, perfect model, the whole future of
+      N0 known) that may only start at the reversal takes off a third (4.7 -> 3.2 mrad RMS over the
+      1.5 s after it): the reaction of the azimuths turning for the step has to be anticipated
+      (the anti-causal part of the inverse of a map with right-half-plane zeros), and the setpoint
+      is not known before it arrives.
+    - The controller's reference (`yaw_reference`, third order, w = 2) asks about as much
+      (plain 4.7 mrad) but continuously, and its future is known the moment the setpoint arrives.
+      `YawPreview` run online on it, step by step as the onboard loop runs it: 0.6 mrad, with the
+      commanded moment inside the azimuths' rate bound.
     """
     from scipy.linalg import toeplitz
     from scipy.optimize import lsq_linear
     from scipy.signal import cont2discrete, tf2ss
 
-    from onboard.control import Gains
+    from onboard.compensation import YawPreview, yaw_loop_model
+    from onboard.control import Controller, Gains, yaw_reference
 
     gains = Gains()
-    w, z, w_r, r_max = (gains.yaw_bandwidth_rad_s, gains.damping_ratio, gains.yaw_reference_rad_s,
-                        gains.max_yaw_rate_rad_s)
+    w, z, r_max = gains.yaw_bandwidth_rad_s, gains.damping_ratio, gains.max_yaw_rate_rad_s
     izz = vehicle.body.inertia[2] + vehicle.hydro.added_mass[5]  # 0.077 kg m^2
     d_r = vehicle.hydro.linear_damping[5]
     u = vehicle.units[0]
     L = u.position[0] * u.neutral[0] + u.position[1] * u.neutral[1]  # 0.11 m
     T, dt, n, lead = 2.8, DT, 170, 20  # reversal at step `lead` (0.2 s), 1.5 s after it
-    # feedforward of the reference prefilter for a 90 deg step at step `lead`
-    psi_r = psid_r = 0.0
-    N0 = np.zeros(n)
-    for k in range(lead, n):
-        acc = w_r * w_r * (np.pi / 2 - psi_r) - 2.0 * w_r * psid_r
-        new = min(max(psid_r + acc * dt, -r_max), r_max)
-        acc, psid_r = (new - psid_r) / dt, new
-        psi_r += psid_r * dt
-        N0[k] = izz * acc + d_r * psid_r
-    assert N0[lead] == pytest.approx(izz * w_r ** 2 * np.pi / 2, rel=0.05)  # the 0.17 N m step
+    rate = 4 * T * L * vehicle.servo.rate_limit * dt
+    assert rate == pytest.approx(0.0616, abs=1e-4)
 
     def series(*tfs):
         """(A, B, C, D) of the tfs in series, each realised on its own (a product of the
-        polynomials is too badly conditioned for the 10th-order W S D)."""
+        polynomials is too badly conditioned for the 12th-order W S D)."""
         A, B, C, D = np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), np.eye(1)
         for num_s, den_s in tfs:
             a, b_, c, d = tf2ss(num_s, den_s)
@@ -504,32 +494,68 @@ def test_in_closed_loop_only_preview_could_halve_the_reaction_yaw_of_a_reversal(
     W = ([1.0, 0.0], np.polyadd(izz * np.array([1.0, 2 * z * w, w * w, w ** 3 / 10]), [d_r, 0.0, 0.0]))
     P = toeplitz_of(series((num / L, den), servo, W))  # W S D
     P0 = toeplitz_of(series(servo, W))  # W S
-    b = (P0 - P) @ N0  # minus the plain error
-    plain = float(np.sqrt(np.mean(b[lead:] ** 2)))
-    assert 0.003 < plain < 0.012, plain  # the HIL test measures 6.5 mrad over six reversals
 
-    d0 = np.diff(np.r_[0.0, N0])
+    def rms(e):
+        return float(np.sqrt(np.mean(e[lead:] ** 2)))
+
+    # -- a stepped feed-forward: the best causal correction takes off a third ------------------
+    w_r, psi_r, psid_r, step_ff = 1.2, 0.0, 0.0, np.zeros(n)
+    for k in range(lead, n):
+        acc = w_r * w_r * (np.pi / 2 - psi_r) - 2.0 * w_r * psid_r
+        new = min(max(psid_r + acc * dt, -r_max), r_max)
+        acc, psid_r = (new - psid_r) / dt, new
+        psi_r += psid_r * dt
+        step_ff[k] = izz * acc + d_r * psid_r
+    assert step_ff[lead] == pytest.approx(izz * w_r ** 2 * np.pi / 2, rel=0.05)  # the 0.17 N m step
+    b = (P0 - P) @ step_ff  # minus the plain error
+    plain_step = rms(b)
+    assert 0.003 < plain_step < 0.012, plain_step
+    d0 = np.diff(np.r_[0.0, step_ff])
+    lo, hi = -rate - d0, rate - d0
+    lo[:lead], hi[:lead] = -1e-12, 1e-12  # c = 0 before the reversal: the setpoint is not known
     Cs = np.tril(np.ones((n, n)))  # c = cumulative increments
+    res = lsq_linear(P @ Cs, b, bounds=(lo, hi), tol=1e-10)
+    causal = rms(P @ Cs @ res.x - b)
+    assert causal > 0.6 * plain_step, (causal, plain_step)  # measured 4.7 -> 3.2 mrad at most
 
-    def best(thrust, start):
-        """RMS yaw error after the reversal of the best c with c = 0 before step `start`, the
-        commanded moment moving at most 4 thrust L rate_limit dt per step."""
-        rate = 4 * thrust * L * vehicle.servo.rate_limit * dt
-        lo, hi = -rate - d0, rate - d0
-        lo[:start], hi[:start] = -1e-12, 1e-12
-        res = lsq_linear(P @ Cs, b, bounds=(lo, hi), tol=1e-10)
-        e = P @ Cs @ res.x - b
-        return float(np.sqrt(np.mean(e[lead:] ** 2))), float(np.sqrt(np.mean(e ** 2)))
+    # -- the model YawPreview plans on is this channel (state space, block by block) ----------
+    A, b_ff, b_c, c_e = yaw_loop_model(vehicle, dt, w, z)
+    x, e_ff, e_c = np.zeros(A.shape[0]), np.zeros(n), np.zeros(n)
+    xc = np.zeros(A.shape[0])
+    for k in range(n):  # impulses at step 0: columns 0 of P - P0 and P
+        e_ff[k], e_c[k] = c_e @ x, c_e @ xc
+        x, xc = A @ x + b_ff * (k == 0), A @ xc + b_c * (k == 0)
+    np.testing.assert_allclose(e_ff, (P - P0)[:, 0], atol=1e-9 * np.abs(P[:, 0]).max())
+    np.testing.assert_allclose(e_c, P[:, 0], atol=1e-9 * np.abs(P[:, 0]).max())
 
-    assert 4 * T * L * vehicle.servo.rate_limit * dt == pytest.approx(0.0616, abs=1e-4)
-    assert np.abs(d0).max() > 2 * 0.0616  # the 0.17 N m step needs about 3 steps of slewing
-    causal, _ = best(T, lead)
-    assert causal > 0.6 * plain, (causal, plain)  # measured 4.7 -> 3.2 mrad at most
-    t_max = float(JetGeometry(vehicle).thrust_max(np.zeros(vehicle.n_units))[0])  # 4.31 N
-    causal_full, _ = best(t_max, lead)
-    assert causal_full > 0.5 * plain, (causal_full, plain)  # not even at full thrust (2.6 mrad)
-    _, preview_all = best(T, 0)
-    assert preview_all < plain / 3, (preview_all, plain)  # measured 0.4 mrad
+    # -- the controller's reference, previewed: YawPreview online ------------------------------
+    ctl = Controller(vehicle)
+    i_z, d1, d2 = ctl._yaw_ff
+    assert i_z == pytest.approx(izz) and d1 == d_r
+    g = np.array([gains.yaw_reference_rad_s, r_max, gains.velocity_reference_s])
+
+    def moment(ref):
+        return i_z * ref[2] + d1 * ref[1] + d2 * np.abs(ref[1]) * ref[1]
+
+    preview = YawPreview(vehicle, dt, w, z)
+    H = preview.horizon
+    state, ff, c = np.zeros(3), np.zeros(n), np.zeros(n)
+    for k in range(n):
+        target = np.pi / 2 if k >= lead else np.nan
+        state = yaw_reference(state[0], state[1], state[2], target, 0.0, g, dt, 1)[:, 0]
+        ff[k] = moment(state)
+        ahead = np.r_[ff[k], moment(yaw_reference(state[0], state[1], state[2], target, 0.0, g, dt, H - 1))]
+        c[k] = preview.correction(ahead)
+        preview.commit(ff[k], c[k])
+    # continuous: its largest change in a step (the rate limit of the reference setting in,
+    # 0.03 N m) is inside what the azimuths can follow in a step, the stepped one needs 3 steps
+    assert np.abs(np.diff(ff)).max() < rate < np.abs(d0).max() / 2
+    plain = rms((P - P0) @ ff)
+    assert 0.7 * plain_step < plain < 1.3 * plain_step, (plain, plain_step)  # as much to cancel
+    assert np.all(c[:lead] == 0.0)  # causal: nothing before the setpoint
+    previewed = rms((P - P0) @ ff + P @ c)
+    assert previewed < plain / 4, (previewed, plain)  # measured 4.7 -> 0.6 mrad
+    assert np.abs(np.diff(np.r_[0.0, ff + c])).max() < rate  # within the azimuths' rate
 
 
 def test_thrust_at_the_joint_angles_of_a_yaw_turn_cannot_stand_in_for_the_azimuths(vehicle):
