@@ -25,6 +25,12 @@ and no fixed-point iteration over the plan (which formed a limit cycle at the jo
 Only the rows that can be cancelled without turning the joints for it are (COMPENSATED_ROWS:
 the axial loss in full, by speed only; half the lateral force, not on yaw): cancelling the reaction
 moment or the lateral force by turning the azimuths excites them more than it cancels.
+
+What the azimuths' turning does to yaw (the M1z reaction above all) is cancelled ahead instead,
+by `YawPreview`: the map from a commanded to a made yaw moment has right-half-plane zeros
+(`azimuth_yaw_map`), so its inverse needs the demand's future, and the controller's yaw
+reference (third order, its own filter) gives that future (`Controller.yaw_preview`). The loop
+adds its correction to the yaw demand before `allocate_compensated`.
 """
 
 from __future__ import annotations
@@ -502,8 +508,8 @@ def allocate_compensated(allocator, compensator: TransientCompensator, wrench_de
     With that remainder balanced in yaw (`yaw_balanced_make_up`): yaw x0.72, position x0.155.
     The four translation scenarios (surge, sway +-0.3, surge <-> sway 0.3, surge +-0.2 m/s): yaw
     x0.49, 0.72, 0.82, 0.97; position x0.15, 0.155, 0.12, 0.14 (were x1.52, 8.0, 2.94, 0.83).
-    The price, yaw reversals (tests/test_closed_loop.py): position 0.173 -> 0.072 m (was 0.019 m
-    with the QP re-vectoring for the make-up), yaw x1.09 (was x1.15).
+    The price, yaw reversals with these rows alone (tests/test_closed_loop.py, `yaw_preview`
+    off): yaw x1.44 (0.111 -> 0.007 m in position), which the yaw preview takes to x0.27.
 
     Not every row is cancelled (`COMPENSATED_ROWS`, `LATERAL_AXES`). Cancelling a transient that
     needs the azimuths to turn excites the transient again through the same turn: for the yaw
@@ -516,12 +522,11 @@ def allocate_compensated(allocator, compensator: TransientCompensator, wrench_de
     in full (made up by thrust, no turning needed) plus half the lateral forces without their yaw
     moment settle. The rest is left to the controller as a disturbance.
 
-    That yaw rest is a limit of the actuators, not of this compensator: in the linearised yaw loop
-    the best correction of the commanded yaw moment within the azimuths' rate limit, with a
-    perfect model and the demand's future known, takes a third off a reversal's reaction yaw, and
-    thrust at fixed joint angles has no yaw to give in a yaw turn (heave 8 N per N m of yaw); only
-    preview of the setpoint (~0.2 s) would cancel it (tests/test_compensation.py, the two tests
-    after the open-loop planning study).
+    That yaw rest is not for a per-step correction of the current demand: thrust at fixed joint
+    angles has no yaw to give in a yaw turn (heave 8 N per N m of yaw), and a correction that
+    turns the azimuths needs the demand ahead. `YawPreview` has it (the controller's yaw reference)
+    and corrects the yaw demand before it reaches this function: HIL yaw reversals 4.84 -> 1.31
+    mrad RMS, where the rows here alone give 6.99 (tests/test_closed_loop.py).
     """
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)):
         raise ValueError(f"iterations: expected an integer >= 0 (re-plans per step), got {iterations!r}")

@@ -30,6 +30,11 @@ so the force gains are K_p = M_ii w^2, K_d = 2 z w M_ii, ... The default bandwid
 4 or more below the actuators (motor lag 0.08 s -> 12.5 rad/s; servo 0.03 s with a 5 rad/s rate
 limit) so the allocator and the jets can follow.
 
+References: depth critically damped second order, velocities first order, yaw critically damped
+third order (`yaw_reference`), so the yaw feed-forward moment is continuous: the azimuths that
+make it turn at a finite rate, and their reaction moment (seed 004) is cancelled ahead along the
+reference's known future (`Controller.yaw_preview`, onboard.compensation.YawPreview).
+
 Anti-windup: each integrator is clamped so its share of the acceleration stays within
 `integral_share` of the axis capacity (capacity: what the jets can give on that axis, from the
 bollard thrust and the geometry, `axis_capacity`); and it stops integrating (conditional

@@ -11,6 +11,8 @@ computations.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -594,3 +596,39 @@ def test_thrust_at_the_joint_angles_of_a_yaw_turn_cannot_stand_in_for_the_azimut
     got = E @ dT
     assert 0.0 < got[5] < 0.01, got  # under a tenth of the yaw asked for
     assert abs(got[2]) > 5 * got[5], got  # and more heave error than yaw made
+
+
+def test_yaw_preview_takes_bad_input_as_no_correction(vehicle):
+    """A feed-forward preview of the wrong length or with NaN/inf gives c = 0 (never a NaN into
+    the allocator); a non-finite commit starts the model over rather than carrying NaN."""
+    from onboard.compensation import YawPreview
+
+    p = YawPreview(vehicle, DT, 2.0, 0.9)
+    assert p.horizon == 40  # 0.4 s at 10 ms
+    ramp = np.linspace(0.0, 0.1, p.horizon)
+    c = p.correction(ramp)
+    assert math.isfinite(c) and c != 0.0  # a turning reference is corrected (the test can fail)
+    p.commit(0.0, c)
+    assert np.any(p.x != 0.0)
+    for bad in (np.full(p.horizon, np.nan), np.r_[ramp[:-1], np.inf], ramp[:-1], np.zeros((2, p.horizon))):
+        assert p.correction(bad) == 0.0
+    p.commit(math.nan, 0.0)
+    assert np.all(p.x == 0.0) and p.c == 0.0
+    assert p.correction(np.zeros(p.horizon)) == 0.0  # at rest, nothing to correct
+
+
+def test_the_loop_previews_yaw_only_when_it_compensates_a_transient_it_models(vehicle):
+    from onboard.link import Link
+    from onboard.loop import LoopConfig, OnboardLoop, VehicleClock
+
+    link = Link("udpin:127.0.0.1:0")
+    try:
+        def preview(v, **cfg):
+            return OnboardLoop(v, link, VehicleClock(), LoopConfig(**cfg), warm_up=False).yaw_preview
+
+        assert preview(vehicle) is not None
+        assert preview(vehicle, yaw_preview=False) is None
+        assert preview(vehicle, compensation=False) is None
+        assert preview(vehicle.with_effects(azimuth_transient=False)) is None
+    finally:
+        link.close()

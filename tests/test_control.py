@@ -273,3 +273,57 @@ def test_controller_refuses_bad_dt_and_nonfinite_estimate():
     from dataclasses import replace
     with pytest.raises(ValueError, match="non-finite"):
         ctl.step(replace(bad, depth_m=float("nan")), Setpoint(), 0.01)
+
+
+# ------------------------------------------------------------------------------------------------
+# the yaw reference and its preview (what the transient compensation plans along)
+
+def test_yaw_reference_is_third_order_by_hand():
+    """From rest toward pi/2 (w = 2, dt = 0.01): the first step's jerk is w^3 pi/2, so
+    psi_r'' = 8 pi/2 0.01 = 0.12566, psi_r' = psi_r'' dt, psi_r = psi_r' dt. Without the rate
+    limit the discrete reference follows the critically damped third-order step response
+    pi/2 (1 - (1 + wt + (wt)^2 / 2) e^(-wt)); with it, |psi_r'| never exceeds the limit and the
+    feed-forward I_z psi_r'' never steps by more than 0.035 N m (a second-order reference stepped
+    it by I_z w^2 pi/2)."""
+    from onboard.control import yaw_reference
+
+    w, dt = 2.0, 0.01
+    first = yaw_reference(0.0, 0.0, 0.0, math.pi / 2, 0.0, np.array([w, 10.0, 0.8]), dt, 1)[:, 0]
+    acc = w ** 3 * math.pi / 2 * dt
+    np.testing.assert_allclose(first, [acc * dt * dt, acc * dt, acc], rtol=1e-9)  # (psi_r is wrapped)
+    n = 600
+    free = yaw_reference(0.0, 0.0, 0.0, math.pi / 2, 0.0, np.array([w, 10.0, 0.8]), dt, n)
+    t = dt * np.arange(1, n + 1)
+    exact = math.pi / 2 * (1 - (1 + w * t + (w * t) ** 2 / 2) * np.exp(-w * t))
+    assert np.abs(free[0] - exact).max() < 0.01 * math.pi / 2
+    g = Gains()
+    held = yaw_reference(0.0, 0.0, 0.0, math.pi / 2, 0.0,
+                         np.array([g.yaw_reference_rad_s, g.max_yaw_rate_rad_s, 0.8]), dt, n)
+    assert np.abs(held[1]).max() == pytest.approx(g.max_yaw_rate_rad_s)  # the limit is reached, and held
+    assert abs(held[0, -1] - math.pi / 2) < 1 * DEG
+    i_z = VEHICLE.body.inertia[2] + VEHICLE.hydro.added_mass[5]
+    assert i_z * np.abs(np.diff(np.r_[0.0, held[2]])).max() < 0.035
+    # joystick rate (no target): psi_r' follows the rate first order, as before
+    rate = yaw_reference(0.0, 0.0, 0.0, math.nan, 0.5, np.array([w, 0.8, 0.8]), dt, 1)[:, 0]
+    np.testing.assert_allclose(rate[1:], [0.5 / 0.8 * dt, 0.5 / 0.8], rtol=1e-12)
+
+
+@pytest.mark.parametrize("setpoint", [Setpoint(depth_m=0.5, yaw_rad=math.pi / 2),
+                                      Setpoint(depth_m=0.5, manual=ManualAxes(yaw_right=0.6))],
+                         ids=["heading", "joystick rate"])
+def test_yaw_preview_is_the_feedforward_the_controller_then_asks(setpoint):
+    """`Controller.yaw_preview(n)` after a step equals the yaw feed-forward of that step and of
+    the n - 1 steps the controller then takes with the setpoint held (at rest, level, where the
+    yaw row of eq. 1's feed-forward is I_z psi_r'' + d1 psi_r' + d2 |psi_r'| psi_r')."""
+    ctl = Controller(VEHICLE)
+    est = _at_rest()
+    for _ in range(15):
+        ctl.step(est, setpoint, 0.01)
+    ahead = ctl.yaw_preview(40, 0.01)
+    asked = [ctl.reference.feedforward[5]]
+    for _ in range(39):
+        ctl.step(est, setpoint, 0.01)
+        asked.append(ctl.reference.feedforward[5])
+    assert np.abs(asked).max() > 0.01  # the reference is turning (the test can fail)
+    np.testing.assert_allclose(ahead, asked, rtol=1e-9, atol=1e-12)
+    assert np.all(Controller(VEHICLE).yaw_preview(5, 0.01) == 0.0)  # nothing before the first step
