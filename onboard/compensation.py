@@ -274,8 +274,8 @@ def yaw_preview_gains(v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, dampi
     Dm = np.eye(H) - np.eye(H, k=-1)
     first = np.linalg.solve(G_c.T @ G_c + lam * Dm.T @ Dm, np.eye(H)[:, 0])  # row 0 of the inverse (symmetric)
     return YawPreviewGains(
-        A=A, b_ff=b_ff, b_c=b_c, kx=-(first @ G_c.T) @ Phi, kn=-(first @ G_c.T) @ G_ff,
-        kc=float(lam * first @ Dm.T[:, 0]), horizon=H,
+        A=_frozen(A), b_ff=_frozen(b_ff), b_c=_frozen(b_c), kx=_frozen(-(first @ G_c.T) @ Phi),
+        kn=_frozen(-(first @ G_c.T) @ G_ff), kc=float(lam * first @ Dm.T[:, 0]), horizon=H,
     )
 
 
@@ -289,9 +289,10 @@ class YawPreview:
     a third at best); its inverse needs the demand's future. The controller's yaw reference is its
     own filter, so that future is known (`Controller.yaw_preview`) until the setpoint changes.
 
-    `correction(n0_future)` -> c (N m, to add to the yaw demand); `commit(n0, c)` advances the model
-    with what this step asked. A fixed linear filter of the feed-forward (`YawPreviewGains`): it
-    reads no measurement, so it cannot destabilise the loop; the model's poles are the yaw loop's.
+    `step(n0_future)` -> c (N m, to add to the yaw demand this step), the model advanced with what
+    the step asks (n0_future[0] + c). A fixed linear filter of the feed-forward (`YawPreviewGains`):
+    it reads no measurement, so it cannot destabilise the loop; the model's poles are the yaw loop's.
+    A preview of the wrong length or holding NaN/inf gives c = 0 and starts the model over.
     """
 
     def __init__(self, v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, damping_ratio: float,
@@ -299,28 +300,48 @@ class YawPreview:
         self.gains = yaw_preview_gains(v, dt_s, yaw_bandwidth_rad_s, damping_ratio, horizon_s, move_weight)
         self.horizon = self.gains.horizon
         self.reset()
+        self.step(np.zeros(self.horizon))  # load the compiled kernel now, not in the first step
 
     def reset(self) -> None:
         self.x = np.zeros(self.gains.A.shape[0])
         self.c = 0.0
 
-    def correction(self, n0_future) -> float:
+    def step(self, n0_future) -> float:
         """c for this step from the feed-forward of this step and the horizon - 1 after it."""
         g = self.gains
-        n0 = np.asarray(n0_future, dtype=float)
-        if n0.shape != (self.horizon,) or not np.all(np.isfinite(n0)):
-            return 0.0
-        c = float(g.kx @ self.x + g.kn @ n0 + g.kc * self.c)
-        return c if math.isfinite(c) else 0.0
-
-    def commit(self, n0: float, c: float) -> None:
-        """This step asked the feed-forward n0 plus the correction c: advance the model."""
-        g = self.gains
-        if not (math.isfinite(n0) and math.isfinite(c)):
+        n0 = np.asarray(n0_future, dtype=np.float64)
+        c = math.nan
+        if n0.shape == (self.horizon,):
+            c = _preview_step(self.x, self.c, n0, g.kx, g.kn, g.kc, g.A, g.b_ff, g.b_c)
+        if not math.isfinite(c):
             self.reset()
-            return
-        self.x = g.A @ self.x + g.b_ff * n0 + g.b_c * c
+            return 0.0
         self.c = c
+        return c
+
+
+@njit(cache=True)
+def _preview_step(x, c_prev, n0, kx, kn, kc, A, b_ff, b_c):
+    """c = kx x + kn n0 + kc c_prev, then x <- A x + b_ff n0[0] + b_c c in place; NaN (x left
+    alone) if n0 holds a non-finite value."""
+    c = kc * c_prev
+    for j in range(n0.shape[0]):
+        if not math.isfinite(n0[j]):
+            return math.nan
+        c += kn[j] * n0[j]
+    m = x.shape[0]
+    for j in range(m):
+        c += kx[j] * x[j]
+    if not math.isfinite(c):
+        return math.nan
+    new = np.empty(m)
+    for i in range(m):
+        acc = b_ff[i] * n0[0] + b_c[i] * c
+        for j in range(m):
+            acc += A[i, j] * x[j]
+        new[i] = acc
+    x[:] = new
+    return c
 
 
 @dataclass(frozen=True)

@@ -225,8 +225,9 @@ class Controller:
         self.reset()
         z6, ro6 = np.zeros(6), np.zeros(6)
         ro6.setflags(write=False)  # the allocator's achieved wrench is read-only
-        for got in (z6, ro6):  # load the compiled kernel now, not in the first step
+        for got in (z6, ro6):  # load the compiled kernels now, not in the first step
             _saturation(z6, got, self.capacity, True)
+        _yaw_feedforward(0.0, 0.0, 0.0, 0.0, 0.0, self._yaw_ref_gains, 0.01, 2, 1.0, 0.0, 0.0)
 
     @property
     def gains_si(self) -> dict:
@@ -274,15 +275,11 @@ class Controller:
         `yaw_reference` run on from its state. What the reference will ask is known ahead because
         the reference is this controller's own filter; the transient compensation uses it
         (onboard.compensation.YawPreview). Zeros before the first step."""
-        out = np.zeros(int(n))
         if not self._started or n <= 0:
-            return out
+            return np.zeros(max(int(n), 0))
         izz, d1, d2 = self._yaw_ff
-        ref = yaw_reference(self._psi_r, self._psid_r, self._psidd_r, self._yaw_target[0], self._yaw_target[1],
-                            self._yaw_ref_gains, float(dt), int(n) - 1)
-        psid = np.concatenate(([self._psid_r], ref[1]))
-        psidd = np.concatenate(([self._psidd_r], ref[2]))
-        return izz * psidd + d1 * psid + d2 * np.abs(psid) * psid
+        return _yaw_feedforward(self._psi_r, self._psid_r, self._psidd_r, self._yaw_target[0], self._yaw_target[1],
+                                self._yaw_ref_gains, float(dt), int(n), izz, d1, d2)
 
     # -- the step ------------------------------------------------------------------------------
     def step(self, estimate: EstimatedState, setpoint: Setpoint, dt: float, achieved=None) -> Wrench:
@@ -424,6 +421,19 @@ def yaw_reference(psi, psid, psidd, target, rate, gains, dt, n):
         psid = new
         psi = (psi + psid * dt + math.pi) % (2.0 * math.pi) - math.pi
         out[0, k], out[1, k], out[2, k] = psi, psid, psidd
+    return out
+
+
+@njit(cache=True)
+def _yaw_feedforward(psi, psid, psidd, target, rate, gains, dt, n, izz, d1, d2):
+    """`Controller.yaw_preview` compiled: I_z psi_r'' + d1 psi_r' + d2 |psi_r'| psi_r' now and
+    along n - 1 steps of `yaw_reference`."""
+    out = np.empty(n)
+    out[0] = izz * psidd + d1 * psid + d2 * abs(psid) * psid
+    ref = yaw_reference(psi, psid, psidd, target, rate, gains, dt, n - 1)
+    for k in range(n - 1):
+        r = ref[1, k]
+        out[k + 1] = izz * ref[2, k] + d1 * r + d2 * abs(r) * r
     return out
 
 

@@ -750,11 +750,8 @@ class OnboardLoop:
         if self.compensator is not None:
             tau = self.demand
             if self.yaw_preview is not None:  # the reaction of what the yaw reference will ask, ahead
-                n0 = self.controller.yaw_preview(self.yaw_preview.horizon, self.period_s)
-                c = self.yaw_preview.correction(n0)
-                self.yaw_preview.commit(float(n0[0]), c)
                 tau = tau.copy()
-                tau[5] += c
+                tau[5] += self.yaw_preview.step(self.controller.yaw_preview(self.yaw_preview.horizon, self.period_s))
             res = self._allocate_compensated(self.allocator, self.compensator, tau, nu_r=est.nu,
                                              iterations=self.config.compensation_iterations)
             alloc, self.prediction = res.allocation, res.prediction

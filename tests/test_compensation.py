@@ -547,8 +547,7 @@ def test_the_yaw_preview_cancels_the_reaction_yaw_of_a_reversal_a_stepped_feedfo
         state = yaw_reference(state[0], state[1], state[2], target, 0.0, g, dt, 1)[:, 0]
         ff[k] = moment(state)
         ahead = np.r_[ff[k], moment(yaw_reference(state[0], state[1], state[2], target, 0.0, g, dt, H - 1))]
-        c[k] = preview.correction(ahead)
-        preview.commit(ff[k], c[k])
+        c[k] = preview.step(ahead)
     # continuous: its largest change in a step (the rate limit of the reference setting in,
     # 0.03 N m) is inside what the azimuths can follow in a step, the stepped one needs 3 steps
     assert np.abs(np.diff(ff)).max() < rate < np.abs(d0).max() / 2
@@ -599,22 +598,19 @@ def test_thrust_at_the_joint_angles_of_a_yaw_turn_cannot_stand_in_for_the_azimut
 
 
 def test_yaw_preview_takes_bad_input_as_no_correction(vehicle):
-    """A feed-forward preview of the wrong length or with NaN/inf gives c = 0 (never a NaN into
-    the allocator); a non-finite commit starts the model over rather than carrying NaN."""
+    """A feed-forward preview of the wrong length or holding NaN/inf gives c = 0 (never a NaN into
+    the allocator) and starts the model over rather than carrying what it cannot know."""
     from onboard.compensation import YawPreview
 
     p = YawPreview(vehicle, DT, 2.0, 0.9)
     assert p.horizon == 40  # 0.4 s at 10 ms
+    assert p.step(np.zeros(p.horizon)) == 0.0 and np.all(p.x == 0.0)  # at rest, nothing to correct
     ramp = np.linspace(0.0, 0.1, p.horizon)
-    c = p.correction(ramp)
-    assert math.isfinite(c) and c != 0.0  # a turning reference is corrected (the test can fail)
-    p.commit(0.0, c)
-    assert np.any(p.x != 0.0)
     for bad in (np.full(p.horizon, np.nan), np.r_[ramp[:-1], np.inf], ramp[:-1], np.zeros((2, p.horizon))):
-        assert p.correction(bad) == 0.0
-    p.commit(math.nan, 0.0)
-    assert np.all(p.x == 0.0) and p.c == 0.0
-    assert p.correction(np.zeros(p.horizon)) == 0.0  # at rest, nothing to correct
+        c = p.step(ramp)
+        assert math.isfinite(c) and c != 0.0 and np.any(p.x != 0.0)  # a turning reference is corrected
+        assert p.step(bad) == 0.0
+        assert np.all(p.x == 0.0) and p.c == 0.0
 
 
 def test_the_loop_previews_yaw_only_when_it_compensates_a_transient_it_models(vehicle):
