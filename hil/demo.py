@@ -457,6 +457,8 @@ def configure(parser) -> None:
                         help="seed-004 azimuth-transient compensation (default: %(default)s)")
     parser.add_argument("--no-compensation", dest="compensation", action="store_const", const="off",
                         help="the same as --compensation off")
+    parser.add_argument("--no-yaw-preview", dest="yaw_preview", action="store_false",
+                        help="compensate without cancelling the azimuths' yaw reaction ahead (onboard.compensation.YawPreview)")
     parser.add_argument("--threads", action="store_true", help="run the parties as threads instead of processes")
     parser.add_argument("--mission", choices=("demo", "hold", "turn"), default="demo",
                         help="demo: the reference mission (default); hold: dive to 0.5 m and hold; turn: the same "
@@ -495,10 +497,12 @@ def run(args) -> int:
         return 2
     mission = (reference_mission() if args.mission == "demo" else
                hold_mission(args.duration or 20.0, turn_at_s=8.0 if args.mission == "turn" else None))
-    config = replace(DEMO_CONFIG, allocator=args.allocator, compensation=args.compensation == "on")
+    config = replace(DEMO_CONFIG, allocator=args.allocator, compensation=args.compensation == "on",
+                     yaw_preview=args.yaw_preview)
     say = lambda s: print(s, flush=True)  # noqa: E731
+    comp = "off" if not config.compensation else "on" if config.yaw_preview else "on, yaw preview off"
     say(f"jetloop demo: plant + onboard + recorder over 127.0.0.1, lock-step, vehicle {vehicle.name}, seed {args.seed}, "
-        f"allocation {config.allocator}, compensation {'on' if config.compensation else 'off'}")
+        f"allocation {config.allocator}, compensation {comp}")
     if not faults.empty:
         say("faults: " + "; ".join(f"{t:g} s {text[len('INJECT '):]}" for t, text in injection_events(faults)))
     try:

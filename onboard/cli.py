@@ -2,7 +2,7 @@
 
     jetloop onboard --link udpout:127.0.0.1:14560 [--ground udpout:127.0.0.1:14550] [--vehicle V.toml]
                     [--lockstep | --realtime] [--output hil|pwm] [--allocator qp|baseline]
-                    [--no-compensation] [--rate HZ] [--duration S] [--key KEYFILE] [--ground-system ID]...
+                    [--no-compensation] [--no-yaw-preview] [--rate HZ] [--duration S] [--key KEYFILE] [--ground-system ID]...
 
 `--lockstep` runs on the vehicle clock of the sensor stream and answers every SYSTEM_TIME frame
 marker (pair it with `jetloop hil --lockstep`); `--realtime` (default) ticks on the wall clock,
@@ -36,6 +36,8 @@ def configure(parser) -> None:
                         help="hil: HIL_ACTUATOR_CONTROLS + SERVO_OUTPUT_RAW (default); pwm: SERVO_OUTPUT_RAW only")
     parser.add_argument("--allocator", choices=("qp", "baseline"), default="qp")
     parser.add_argument("--no-compensation", action="store_true", help="turn the seed-004 transient compensation off")
+    parser.add_argument("--no-yaw-preview", action="store_true",
+                        help="compensate without cancelling the azimuths' yaw reaction ahead (onboard.compensation.YawPreview)")
     parser.add_argument("--estimator", choices=("filterpy", "compiled"), default="filterpy",
                         help="EKF backend: filterpy (default) or the same equations compiled with numba")
     parser.add_argument("--key", default=None, metavar="KEYFILE",
@@ -77,7 +79,8 @@ def run(args) -> int:
         print(f"jetloop onboard: {exc}", file=sys.stderr)
         return 2
     config = LoopConfig(control_rate_hz=rate, output=args.output, allocator=args.allocator,
-                        compensation=not args.no_compensation, estimator_backend=args.estimator,
+                        compensation=not args.no_compensation, yaw_preview=not args.no_yaw_preview,
+                        estimator_backend=args.estimator,
                         signing_key=key, ground_systems=ground_systems)
     clock = VehicleClock() if args.lockstep else WallClock()
     loop = OnboardLoop(vehicle, link, clock, config, ground=ground)

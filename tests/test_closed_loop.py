@@ -374,6 +374,21 @@ def test_demo_command_writes_recording_plot_and_summary(tmp_path, capsys):
     assert (out / "telemetry.tlog").stat().st_size > 10_000
 
 
+def test_demo_and_onboard_take_the_yaw_preview_switch():
+    import argparse
+
+    from hil.demo import configure
+    from onboard.cli import configure as onboard_configure
+
+    demo = argparse.ArgumentParser()
+    configure(demo)
+    assert demo.parse_args([]).yaw_preview is True
+    assert demo.parse_args(["--no-yaw-preview"]).yaw_preview is False
+    onboard = argparse.ArgumentParser()
+    onboard_configure(onboard)
+    assert onboard.parse_args(["--link", "udpout:127.0.0.1:1", "--no-yaw-preview"]).no_yaw_preview is True
+
+
 def test_demo_command_rejects_a_bad_vehicle_file(tmp_path, capsys):
     from ground.cli import main
 
