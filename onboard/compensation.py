@@ -191,7 +191,11 @@ def azimuth_yaw_map(v: Vehicle, unit: int = 0, beta_rad: float = 0.0):
 
 # -- the yaw reaction, cancelled ahead along the controller's own reference ------------------------
 
-PREVIEW_HORIZON_S = 0.4  # how far ahead the yaw correction plans (the RHP zeros' 1/|z| = 0.03 s, 13x)
+# How far ahead the yaw correction plans. The commanded -> made yaw moment map has two RHP pairs,
+# 21.4 +- 22.7j and 4.73 +- 57.8j rad/s (1/Re z = 0.05 and 0.21 s). Measured on the linearised
+# reversal (tests/test_compensation.py): 0.3-0.8 s all give 0.59 mrad, 0.2 s 0.70, and at 0.15 s
+# the plan diverges (`yaw_preview_gains` refuses it).
+PREVIEW_HORIZON_S = 0.4
 # weight of the correction's rate against the yaw error: J = int e^2 dt + MOVE_WEIGHT int c'^2 dt
 PREVIEW_MOVE_WEIGHT = 1e-6  # rad^2 per (N m/s)^2
 
@@ -251,6 +255,7 @@ class YawPreviewGains:
     kn: np.ndarray
     kc: float
     horizon: int
+    radius: float  # spectral radius of the filter the plan makes (<= 1: checked when built)
 
 
 def yaw_preview_gains(v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, damping_ratio: float,
@@ -273,10 +278,17 @@ def yaw_preview_gains(v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, dampi
     lam = move_weight / dt_s ** 2
     Dm = np.eye(H) - np.eye(H, k=-1)
     first = np.linalg.solve(G_c.T @ G_c + lam * Dm.T @ Dm, np.eye(H)[:, 0])  # row 0 of the inverse (symmetric)
-    return YawPreviewGains(
-        A=_frozen(A), b_ff=_frozen(b_ff), b_c=_frozen(b_c), kx=_frozen(-(first @ G_c.T) @ Phi),
-        kn=_frozen(-(first @ G_c.T) @ G_ff), kc=float(lam * first @ Dm.T[:, 0]), horizon=H,
-    )
+    kx, kn, kc = -(first @ G_c.T) @ Phi, -(first @ G_c.T) @ G_ff, float(lam * first @ Dm.T[:, 0])
+    # the filter [x; c] -> [A x + b_c c; c] with c = kx x + kc c_prev (+ the preview): its spectral
+    # radius. One eigenvalue is 1 (a constant c has no yaw effect, W(0) = 0, so nothing moves it);
+    # a horizon too short for the RHP zeros puts one outside (0.15 s at 100 Hz: 1.09).
+    F = np.block([[A + np.outer(b_c, kx), (b_c * kc)[:, None]], [kx[None, :], np.array([[kc]])]])
+    radius = float(np.max(np.abs(np.linalg.eigvals(F))))
+    if not radius <= 1.0 + 1e-6:
+        raise ValueError(f"horizon_s: the yaw preview's plan over {horizon_s} s at dt {dt_s} s is unstable "
+                         f"(spectral radius {radius:.4f}); plan further ahead (default {PREVIEW_HORIZON_S} s)")
+    return YawPreviewGains(A=_frozen(A), b_ff=_frozen(b_ff), b_c=_frozen(b_c), kx=_frozen(kx), kn=_frozen(kn),
+                           kc=kc, horizon=H, radius=radius)
 
 
 class YawPreview:
@@ -291,14 +303,21 @@ class YawPreview:
 
     `step(n0_future)` -> c (N m, to add to the yaw demand this step), the model advanced with what
     the step asks (n0_future[0] + c). A fixed linear filter of the feed-forward (`YawPreviewGains`):
-    it reads no measurement, so it cannot destabilise the loop; the model's poles are the yaw loop's.
-    A preview of the wrong length or holding NaN/inf gives c = 0 and starts the model over.
+    it reads no measurement, so it cannot destabilise the loop, and its own stability is checked
+    when it is built (spectral radius <= 1; the one eigenvalue at 1 is a constant c, which leaves
+    a few 1e-5 N m after a turn for the yaw integrator). c is held within the jets' yaw capacity
+    (k T_max L); a preview of the wrong length or holding NaN/inf gives c = 0 and starts the model
+    over.
     """
 
     def __init__(self, v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, damping_ratio: float,
                  horizon_s: float = PREVIEW_HORIZON_S, move_weight: float = PREVIEW_MOVE_WEIGHT):
         self.gains = yaw_preview_gains(v, dt_s, yaw_bandwidth_rad_s, damping_ratio, horizon_s, move_weight)
         self.horizon = self.gains.horizon
+        num, den = azimuth_yaw_map(v)
+        lever = abs(float(num[-1] / den[-1]))  # DC: the tangential thrust's lever, 0.11 m
+        # the most yaw the jets can make by turning: every unit at bollard T_max (seed 000 eq. 15)
+        self.limit_nm = float(np.sum(JetGeometry(v).thrust_max(np.zeros(v.n_units)))) * lever
         self.reset()
         self.step(np.zeros(self.horizon))  # load the compiled kernel now, not in the first step
 
@@ -312,7 +331,7 @@ class YawPreview:
         n0 = np.asarray(n0_future, dtype=np.float64)
         c = math.nan
         if n0.shape == (self.horizon,):
-            c = _preview_step(self.x, self.c, n0, g.kx, g.kn, g.kc, g.A, g.b_ff, g.b_c)
+            c = _preview_step(self.x, self.c, n0, g.kx, g.kn, g.kc, g.A, g.b_ff, g.b_c, self.limit_nm)
         if not math.isfinite(c):
             self.reset()
             return 0.0
@@ -321,9 +340,9 @@ class YawPreview:
 
 
 @njit(cache=True)
-def _preview_step(x, c_prev, n0, kx, kn, kc, A, b_ff, b_c):
-    """c = kx x + kn n0 + kc c_prev, then x <- A x + b_ff n0[0] + b_c c in place; NaN (x left
-    alone) if n0 holds a non-finite value."""
+def _preview_step(x, c_prev, n0, kx, kn, kc, A, b_ff, b_c, limit):
+    """c = kx x + kn n0 + kc c_prev within +-limit, then x <- A x + b_ff n0[0] + b_c c in place;
+    NaN (x left alone) if n0 holds a non-finite value."""
     c = kc * c_prev
     for j in range(n0.shape[0]):
         if not math.isfinite(n0[j]):
@@ -334,6 +353,7 @@ def _preview_step(x, c_prev, n0, kx, kn, kc, A, b_ff, b_c):
         c += kx[j] * x[j]
     if not math.isfinite(c):
         return math.nan
+    c = min(max(c, -limit), limit)
     new = np.empty(m)
     for i in range(m):
         acc = b_ff[i] * n0[0] + b_c[i] * c
@@ -530,7 +550,7 @@ def allocate_compensated(allocator, compensator: TransientCompensator, wrench_de
     The four translation scenarios (surge, sway +-0.3, surge <-> sway 0.3, surge +-0.2 m/s): yaw
     x0.49, 0.72, 0.82, 0.97; position x0.15, 0.155, 0.12, 0.14 (were x1.52, 8.0, 2.94, 0.83).
     The price, yaw reversals with these rows alone (tests/test_closed_loop.py, `yaw_preview`
-    off): yaw x1.44 (0.111 -> 0.007 m in position), which the yaw preview takes to x0.27.
+    off): yaw x1.44 (0.111 -> 0.007 m in position), which the yaw preview takes to x0.28.
 
     Not every row is cancelled (`COMPENSATED_ROWS`, `LATERAL_AXES`). Cancelling a transient that
     needs the azimuths to turn excites the transient again through the same turn: for the yaw
@@ -546,7 +566,7 @@ def allocate_compensated(allocator, compensator: TransientCompensator, wrench_de
     That yaw rest is not for a per-step correction of the current demand: thrust at fixed joint
     angles has no yaw to give in a yaw turn (heave 8 N per N m of yaw), and a correction that
     turns the azimuths needs the demand ahead. `YawPreview` has it (the controller's yaw reference)
-    and corrects the yaw demand before it reaches this function: HIL yaw reversals 4.84 -> 1.31
+    and corrects the yaw demand before it reaches this function: HIL yaw reversals 4.84 -> 1.33
     mrad RMS, where the rows here alone give 6.99 (tests/test_closed_loop.py).
     """
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)):

@@ -31,9 +31,11 @@ so the force gains are K_p = M_ii w^2, K_d = 2 z w M_ii, ... The default bandwid
 limit) so the allocator and the jets can follow.
 
 References: depth critically damped second order, velocities first order, yaw critically damped
-third order (`yaw_reference`), so the yaw feed-forward moment is continuous: the azimuths that
-make it turn at a finite rate, and their reaction moment (seed 004) is cancelled ahead along the
-reference's known future (`Controller.yaw_preview`, onboard.compensation.YawPreview).
+third order (`yaw_reference`), so a new heading does not step the yaw feed-forward moment (the
+azimuths that make it turn at a finite rate); it steps only where the rate limit sets in (~0.03
+N m for 90 deg, half what the azimuths slew in a step) and, in joystick rate mode, by
+I_z rate / T_v. Their reaction moment (seed 004) is cancelled ahead along the reference's known
+future (`Controller.yaw_preview`, onboard.compensation.YawPreview).
 
 Anti-windup: each integrator is clamped so its share of the acceleration stays within
 `integral_share` of the axis capacity (capacity: what the jets can give on that axis, from the
@@ -227,6 +229,7 @@ class Controller:
         ro6.setflags(write=False)  # the allocator's achieved wrench is read-only
         for got in (z6, ro6):  # load the compiled kernels now, not in the first step
             _saturation(z6, got, self.capacity, True)
+        yaw_reference(0.0, 0.0, 0.0, 0.0, 0.0, self._yaw_ref_gains, 0.01, 1)
         _yaw_feedforward(0.0, 0.0, 0.0, 0.0, 0.0, self._yaw_ref_gains, 0.01, 2, 1.0, 0.0, 0.0)
 
     @property
@@ -397,9 +400,10 @@ def yaw_reference(psi, psid, psidd, target, rate, gains, dt, n):
     """n steps of the yaw reference from (psi_r, psi_r', psi_r''): rows psi_r, psi_r', psi_r''.
 
     gains = [w, max rate, T_v]. With a heading target (not NaN), a critically damped third-order
-    prefilter, so the reference's acceleration, and with it the yaw feed-forward moment, is
-    continuous (the azimuths that make that moment move at a finite rate; with a second-order
-    prefilter a new heading stepped the feed-forward by I_z w^2 dpsi, 0.17 N m for 90 deg):
+    prefilter, so a new heading does not step the reference's acceleration, nor with it the yaw
+    feed-forward moment (the azimuths that make that moment move at a finite rate; a second-order
+    prefilter stepped it by I_z w^2 dpsi, 0.17 N m for 90 deg at w = 1.2); it steps only where
+    the rate limit sets in:
 
         d/dt psi_r'' = w^3 wrap(target - psi_r) - 3 w^2 psi_r' - 3 w psi_r''
 

@@ -743,8 +743,13 @@ class OnboardLoop:
                 self.yaw_preview.reset()
         achieved = None
         if self.allocation is not None and self._was_enabled:
-            achieved = self.allocation.wrench_achieved if self.prediction is None else (
-                np.asarray(self.allocation.wrench_achieved) + self.prediction.wrench_n)
+            achieved = np.array(self.allocation.wrench_achieved, dtype=float)
+            if self.prediction is not None:
+                achieved += self.prediction.wrench_n
+            if self.yaw_preview is not None:
+                # yaw: what the jets gave for the controller's demand, without the preview's
+                # correction c and the reaction c is there to cancel (not a saturation of the jets)
+                achieved[5] = self.allocation.wrench_achieved[5] - self.yaw_preview.c
         self.demand = self.controller.step(est, self.setpoint, self.period_s, achieved=achieved).as_array()
         marks[1] = time.perf_counter()
         if self.compensator is not None:

@@ -173,7 +173,7 @@ def test_compensation_halves_the_position_disturbance_of_fast_re_vectoring():
 
 @pytest.mark.slow
 def test_compensation_halves_the_yaw_disturbance_of_fast_re_vectoring():
-    """Measured: yaw 4.84 -> 1.31 mrad RMS (x0.27), position 0.111 -> 0.012 m (x0.11). The yaw
+    """Measured: yaw 4.84 -> 1.33 mrad RMS (x0.28), position 0.111 -> 0.012 m (x0.11). The yaw
     part is the azimuths' reaction (M1z) to their own turning for each reversal's yaw moment; the
     row compensation cannot cancel it (next test), the yaw preview (onboard.compensation.YawPreview)
     does, ahead, along the controller's third-order yaw reference."""
@@ -186,7 +186,7 @@ def test_compensation_halves_the_yaw_disturbance_of_fast_re_vectoring():
 def test_without_the_yaw_preview_the_reaction_yaw_of_fast_re_vectoring_stays():
     """The same flight, compensated but with `yaw_preview=False`: the row compensation alone
     (axial losses by speed, half the lateral forces, not on yaw) leaves the reaction yaw. Measured:
-    yaw 4.84 -> 6.99 mrad (x1.44; position 0.111 -> 0.007 m), where the preview gives 1.31. Why
+    yaw 4.84 -> 6.99 mrad (x1.44; position 0.111 -> 0.007 m), where the preview gives 1.33. Why
     (tests/test_compensation.py): the map from a commanded to a made yaw moment has right-half-plane
     zeros, so only a correction that knows the demand ahead can cancel the reaction; the
     controller's yaw reference supplies that future."""
@@ -374,18 +374,18 @@ def test_demo_command_writes_recording_plot_and_summary(tmp_path, capsys):
     assert (out / "telemetry.tlog").stat().st_size > 10_000
 
 
-def test_demo_and_onboard_take_the_yaw_preview_switch():
+def test_demo_and_onboard_take_the_yaw_preview_switch(tmp_path, capsys):
     import argparse
 
-    from hil.demo import configure
+    from ground.cli import main
     from onboard.cli import configure as onboard_configure
 
-    demo = argparse.ArgumentParser()
-    configure(demo)
-    assert demo.parse_args([]).yaw_preview is True
-    assert demo.parse_args(["--no-yaw-preview"]).yaw_preview is False
+    assert main(["demo", "--out", str(tmp_path), "--mission", "hold", "--duration", "2", "--threads",
+                 "--no-yaw-preview"]) == 0
+    assert "compensation on, yaw preview off" in capsys.readouterr().out
     onboard = argparse.ArgumentParser()
     onboard_configure(onboard)
+    assert onboard.parse_args(["--link", "udpout:127.0.0.1:1"]).no_yaw_preview is False
     assert onboard.parse_args(["--link", "udpout:127.0.0.1:1", "--no-yaw-preview"]).no_yaw_preview is True
 
 

@@ -441,7 +441,7 @@ def test_the_yaw_preview_cancels_the_reaction_yaw_of_a_reversal_a_stepped_feedfo
     w^3/10 int e, times I_z) turns a moment error m into the yaw error W m, W(s) = s / (I_z (s^3 +
     2 z w s^2 + w^2 s + w^3 / 10) + d_r s^2). Plain: e = W S (D - 1) N0 for the feed-forward N0;
     a correction c of the commanded moment gives e = W S ((D - 1) N0 + D c).
-    - A second-order reference (the controller's until this test: psi_r'' = w_r^2 (psi_sp - psi_r)
+    - A second-order reference (the controller's before the yaw preview: psi_r'' = w_r^2 (psi_sp - psi_r)
       - 2 w_r psi_r', w_r = 1.2) steps N0 by I_z w_r^2 pi/2 = 0.17 N m at a 90 deg reversal. The
       best c (bounded least squares, the rate bound on N0 + c, perfect model, the whole future of
       N0 known) that may only start at the reversal takes off a third (4.7 -> 3.2 mrad RMS over the
@@ -628,3 +628,52 @@ def test_the_loop_previews_yaw_only_when_it_compensates_a_transient_it_models(ve
         assert preview(vehicle.with_effects(azimuth_transient=False)) is None
     finally:
         link.close()
+
+
+def test_yaw_preview_step_is_the_first_move_of_its_least_squares_plan(vehicle):
+    """`YawPreview.step` against the plan solved by brute force: the yaw errors of the next H steps
+    simulated on `yaw_loop_model` from the state x (e = e0 + G c, G's columns from unit moves),
+    then min |e0 + G c|^2 + lam |c_j - c_(j-1)|^2 (c_(-1) the last c, lam = PREVIEW_MOVE_WEIGHT /
+    dt^2) by `np.linalg.lstsq`. The step returns the plan's first move and advances the model
+    with the feed-forward and that move. A horizon too short for the RHP zeros is refused."""
+    from onboard.compensation import PREVIEW_MOVE_WEIGHT, YawPreview, yaw_loop_model
+
+    from onboard.control import yaw_reference
+
+    p = YawPreview(vehicle, DT, 2.0, 0.9)
+    A, b_ff, b_c, c_e = yaw_loop_model(vehicle, DT, 2.0, 0.9)
+    H = p.horizon
+    i_z = vehicle.body.inertia[2] + vehicle.hydro.added_mass[5]
+    g = np.array([2.0, 0.8, 0.8])
+    rng = np.random.default_rng(4)
+    ref = np.zeros(3)
+    for k in range(90):  # a 90 deg turn's feed-forward (inertia only), the plan checked on the way
+        ref = yaw_reference(ref[0], ref[1], ref[2], math.pi / 2, 0.0, g, DT, 1)[:, 0]
+        n0 = i_z * np.r_[ref[2], yaw_reference(ref[0], ref[1], ref[2], math.pi / 2, 0.0, g, DT, H - 1)[2]]
+        if k not in (5, 30, 60, 89):
+            p.step(n0)
+            continue
+        x0, c_prev = p.x.copy(), p.c
+        n0 = n0 + rng.normal(scale=0.01, size=H)  # and a feed-forward the reference would not ask
+
+        def errors(x, ff, moves):
+            out = np.empty(H)
+            for j in range(H):
+                x = A @ x + b_ff * ff[j] + b_c * moves[j]
+                out[j] = c_e @ x
+            return out
+
+        e0 = errors(x0, n0, np.zeros(H))
+        G = np.column_stack([errors(np.zeros_like(x0), np.zeros(H), np.eye(H)[i]) for i in range(H)])
+        lam = PREVIEW_MOVE_WEIGHT / DT ** 2
+        D = np.eye(H) - np.eye(H, k=-1)
+        rhs = np.concatenate([-e0, np.sqrt(lam) * np.eye(H)[0] * c_prev])
+        plan = np.linalg.lstsq(np.vstack([G, np.sqrt(lam) * D]), rhs, rcond=None)[0]
+        c = p.step(n0)
+        assert abs(c) < p.limit_nm  # (the limit is not what decides here)
+        assert c == pytest.approx(plan[0], rel=1e-6, abs=1e-9)
+        np.testing.assert_allclose(p.x, A @ x0 + b_ff * n0[0] + b_c * c, rtol=1e-12, atol=1e-15)
+        assert p.c == c
+    assert p.gains.radius <= 1.0 + 1e-6
+    with pytest.raises(ValueError, match="horizon_s.*unstable"):
+        YawPreview(vehicle, DT, 2.0, 0.9, horizon_s=0.15)
