@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
 
 # name -> (module, one-line help). Add a subcommand by adding a line here.
 SUBCOMMANDS = {
@@ -45,11 +47,31 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=f"jetloop {name}", description=help_text)
     module.configure(parser)
     args = parser.parse_args(argv[1:])
+    previous = _stop_on_sigterm()
     try:
         return int(module.run(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _stop_on_sigterm():
+    """SIGTERM (what systemd, supervisors and `kill` send) stops a command as Ctrl-C does: each
+    command's KeyboardInterrupt path closes its links and recordings and prints its summary.
+    Not SIGINT itself: a process started with SIGINT ignored (a shell's background job, or a
+    child spawned while its parent was inside system()) keeps it ignored, as it should. Only
+    from the main thread (the only one that may set handlers). Returns the handler it replaced,
+    or None if it set none."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_interrupt)
 
 
 if __name__ == "__main__":
