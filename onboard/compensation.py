@@ -189,6 +189,12 @@ def azimuth_yaw_map(v: Vehicle, unit: int = 0, beta_rad: float = 0.0):
     return num, den
 
 
+def azimuth_lever(num, den) -> float:
+    """DC gain of `azimuth_yaw_map` (num, den): L cos(beta), the tangential thrust's lever (0.11 m
+    on the reference vehicle at beta = 0); the transients have no DC part."""
+    return float(np.polyval(num, 0.0) / np.polyval(den, 0.0))
+
+
 # -- the yaw reaction, cancelled ahead along the controller's own reference ------------------------
 
 # How far ahead the yaw correction plans. The commanded -> made yaw moment map has two RHP pairs,
@@ -215,8 +221,7 @@ def yaw_loop_model(v: Vehicle, dt_s: float, yaw_bandwidth_rad_s: float, damping_
     order, is too badly conditioned).
     """
     num, den = azimuth_yaw_map(v)
-    dc = np.polyval(num, 0.0) / np.polyval(den, 0.0)
-    aD, bD, cD, dD = tf2ss(num / dc, den)
+    aD, bD, cD, dD = tf2ss(num / azimuth_lever(num, den), den)
     nD = aD.shape[0]
     tau = v.servo.time_constant
     izz = v.body.inertia[2] + v.hydro.added_mass[5]
@@ -314,10 +319,10 @@ class YawPreview:
                  horizon_s: float = PREVIEW_HORIZON_S, move_weight: float = PREVIEW_MOVE_WEIGHT):
         self.gains = yaw_preview_gains(v, dt_s, yaw_bandwidth_rad_s, damping_ratio, horizon_s, move_weight)
         self.horizon = self.gains.horizon
-        num, den = azimuth_yaw_map(v)
-        lever = abs(float(num[-1] / den[-1]))  # DC: the tangential thrust's lever, 0.11 m
         # the most yaw the jets can make by turning: every unit at bollard T_max (seed 000 eq. 15)
-        self.limit_nm = float(np.sum(JetGeometry(v).thrust_max(np.zeros(v.n_units)))) * lever
+        # at the tangential lever
+        self.limit_nm = float(np.sum(JetGeometry(v).thrust_max(np.zeros(v.n_units)))) * abs(
+            azimuth_lever(*azimuth_yaw_map(v)))
         self.reset()
         self.step(np.zeros(self.horizon))  # load the compiled kernel now, not in the first step
 
@@ -749,6 +754,7 @@ __all__ = [
     "LATERAL_AXES",
     "discretise_row",
     "azimuth_yaw_map",
+    "azimuth_lever",
     "servo_motion",
     "TransientPrediction",
     "TransientCompensator",

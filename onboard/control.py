@@ -433,12 +433,17 @@ def _yaw_feedforward(psi, psid, psidd, target, rate, gains, dt, n, izz, d1, d2):
     """`Controller.yaw_preview` compiled: I_z psi_r'' + d1 psi_r' + d2 |psi_r'| psi_r' now and
     along n - 1 steps of `yaw_reference`."""
     out = np.empty(n)
-    out[0] = izz * psidd + d1 * psid + d2 * abs(psid) * psid
+    out[0] = _yaw_moment(psid, psidd, izz, d1, d2)
     ref = yaw_reference(psi, psid, psidd, target, rate, gains, dt, n - 1)
     for k in range(n - 1):
-        r = ref[1, k]
-        out[k + 1] = izz * ref[2, k] + d1 * r + d2 * abs(r) * r
+        out[k + 1] = _yaw_moment(ref[1, k], ref[2, k], izz, d1, d2)
     return out
+
+
+@njit(cache=True)
+def _yaw_moment(r, r_dot, izz, d1, d2):
+    """Yaw row of eq. 1's feed-forward, level and deep: I_z r' + d1 r + d2 |r| r."""
+    return izz * r_dot + d1 * r + d2 * abs(r) * r
 
 
 @njit(cache=True)
