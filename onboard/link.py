@@ -1,7 +1,7 @@
 """A MAVLink link over UDP or a serial line, chosen by a connection string; never raises on garbage.
 
 Connection strings (the MAVProxy / pymavlink spelling):
-    udpin:HOST:PORT     listen on HOST:PORT; replies go to whoever spoke last (port 0: any free port)
+    udpin:HOST:PORT     listen on HOST:PORT (port 0: any free port); replies go to the locked peer (below)
     udpout:HOST:PORT    send to HOST:PORT from an ephemeral local port; receive on that port
     /dev/ttyXXX:BAUD    a serial line through pyserial (also `serial:/dev/ttyXXX:BAUD`)
     tlog:PATH           replay a .tlog recording as if it arrived on a link (what is sent is dropped)
@@ -12,13 +12,23 @@ itself, not from pymavlink's process-wide dialect chosen by an environment varia
 `garbage_bytes` (bytes that did not end up in a good packet), `bad_packets` (framed packets
 whose CRC or length failed) and `unknown_packets` (ids the dialect does not know). After a bad packet the parser restarts one byte after its start
 marker, so a truncated packet does not swallow the good packet that follows it.
+
+A udpin link locks its peer (issue 15): the first sender whose datagram holds a packet of valid
+MAVLink (with `signing_key`, one whose MAVLink 2 signature verifies with that key) becomes the
+peer; replies, telemetry and actuator output go to it alone, and datagrams from anyone else are
+dropped unread and counted (`foreign_datagrams`) until the peer has been silent for
+`peer_timeout_s`, when the next sender that proves itself takes over. `peer=(HOST, PORT)` fixes
+the peer for good. Junk, or unsigned packets when a key is set, never moves the peer. A udpout
+link reads only its peer's datagrams, the same way.
 """
 
 from __future__ import annotations
 
+import math
 import re
 import select
 import socket
+import time
 from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -41,6 +51,20 @@ class Endpoint:
     port: int = 0
     device: str = ""
     baud: int = 0
+
+
+def parse_peer(peer) -> tuple[str, int]:
+    """`HOST:PORT` (or a (host, port) pair) -> (host, port), else a LinkError saying what was expected."""
+    if isinstance(peer, tuple) and len(peer) == 2:
+        host, port = str(peer[0]), str(peer[1])
+    else:
+        host, _, port = str(peer).strip().rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) <= 65535:
+        raise LinkError(f"peer {peer!r}: expected HOST:PORT with a port 1..65535")
+    try:
+        return socket.gethostbyname(host), int(port)
+    except OSError as exc:
+        raise LinkError(f"peer {peer!r}: unknown host {host!r}") from exc
 
 
 def parse_connection(text: str) -> Endpoint:
@@ -68,6 +92,7 @@ def parse_connection(text: str) -> Endpoint:
 
 
 MAX_DATAGRAM = 65535  # the largest UDP payload
+PEER_TIMEOUT_S = 5.0  # a udpin peer silent this long may be replaced by the next sender that proves itself
 # The socket's receive buffer: a process descheduled for a second (a loaded or virtual machine:
 # `jetloop soak` saw the telemetry recorder lose 378 packets in minutes with 40 s of hypervisor
 # steal) overflows the default 208 kB, which holds about 200 small datagrams (each costs its
@@ -76,7 +101,7 @@ RECV_BUFFER_BYTES = 4 << 20
 
 
 class _Udp:
-    def __init__(self, ep: Endpoint):
+    def __init__(self, ep: Endpoint, peer=None, peer_timeout_s: float = PEER_TIMEOUT_S):
         try:
             self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             if ep.kind == "udpin":
@@ -84,7 +109,7 @@ class _Udp:
                     # two closed loops at once (test workers) then shared one port and stole packets
                     self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 self.sock.bind((ep.host, ep.port))
-                self.peer = None
+                self.peer = None if peer is None else (socket.gethostbyname(peer[0]), int(peer[1]))
             else:
                 self.sock.bind(("0.0.0.0" if ep.host not in ("127.0.0.1", "localhost") else ep.host, 0))
                 self.peer = (socket.gethostbyname(ep.host), ep.port)
@@ -101,8 +126,12 @@ class _Udp:
         # in the onboard RSS creep hil.soak measured while link faults changed the traffic).
         self._buf = bytearray(MAX_DATAGRAM)
         self._view = memoryview(self._buf)
-        self.fixed_peer = ep.kind == "udpout"
-        self.foreign_datagrams = 0  # udpout: datagrams from anyone but the peer, dropped unread
+        self.fixed_peer = ep.kind == "udpout" or peer is not None
+        self.peer_timeout_s = float(peer_timeout_s)
+        self.peer_heard = -math.inf  # monotonic time of the peer's last datagram
+        self.candidate = None  # udpin: the sender of the datagram just read, not (yet) the peer
+        self.foreign_datagrams = 0  # datagrams from anyone but the peer, dropped unread (or unproven)
+        self.peer_changes = 0  # udpin: times a new peer was locked (the first one included)
 
     @property
     def local_address(self):
@@ -110,7 +139,7 @@ class _Udp:
 
     def write(self, data: bytes) -> bool:
         if self.peer is None:
-            return False  # udpin: nobody has spoken yet
+            return False  # udpin: nobody has proven itself yet
         try:
             self.sock.sendto(data, self.peer)
             return True
@@ -118,19 +147,33 @@ class _Udp:
             return False  # e.g. ICMP port unreachable reported late: the link stays up
 
     def read(self, timeout_s: float) -> bytes:
-        try:
-            ready, _, _ = select.select([self.sock], [], [], max(timeout_s, 0.0))
-            if not ready:
+        """The next datagram from the peer, or from a sender that may become it (`candidate` set);
+        b"" when none came. Another sender's datagram, while the peer holds the link, is dropped."""
+        wait = max(timeout_s, 0.0)
+        while True:
+            try:
+                ready, _, _ = select.select([self.sock], [], [], wait)
+                if not ready:
+                    return b""
+                n, addr = self.sock.recvfrom_into(self._buf)
+            except (OSError, ValueError):
                 return b""
-            n, addr = self.sock.recvfrom_into(self._buf)
-        except (OSError, ValueError):
-            return b""
-        if not self.fixed_peer:
-            self.peer = addr  # udpin answers whoever spoke last (as MAVProxy's udpin does)
-        elif addr != self.peer:  # udpout talks to one peer: another host's datagram is not read
-            self.foreign_datagrams += 1
-            return b""
-        return bytes(self._view[:n])
+            now = time.monotonic()
+            if addr == self.peer:
+                self.peer_heard = now
+                return bytes(self._view[:n])
+            if self.fixed_peer or now - self.peer_heard < self.peer_timeout_s:
+                self.foreign_datagrams += 1  # never read, never answered
+                wait = 0.0  # what else is already queued may be the peer's
+                continue
+            self.candidate = addr  # no peer yet, or a silent one: the link decides (Link.lock_peer)
+            return bytes(self._view[:n])
+
+    def lock(self, addr) -> None:
+        if addr != self.peer:
+            self.peer_changes += 1
+        self.peer = addr
+        self.peer_heard = time.monotonic()
 
     def close(self) -> None:
         self.sock.close()
@@ -206,11 +249,23 @@ class _Replay:
 class Link:
     """send(msg) / recv(timeout_s) of MAVLink messages over one transport; counts what was bad."""
 
-    def __init__(self, connection: str, source_system: int = 1, source_component: int = 1):
+    def __init__(self, connection: str, source_system: int = 1, source_component: int = 1, peer=None,
+                 peer_timeout_s: float = PEER_TIMEOUT_S, signing_key: bytes | None = None):
+        """`peer`: "HOST:PORT" or (host, port), a udpin link's fixed peer; `signing_key`: a udpin
+        peer must prove itself with a packet signed with it; `peer_timeout_s`: how long a silent
+        udpin peer keeps the link from other senders."""
         self.endpoint = parse_connection(connection)
         self.connection = connection
         kind = self.endpoint.kind
-        self._io = _Serial(self.endpoint) if kind == "serial" else _Replay(self.endpoint) if kind == "tlog" else _Udp(self.endpoint)
+        if peer is not None:
+            if kind != "udpin":
+                raise LinkError(f"link {connection!r}: a fixed peer applies to udpin links only")
+            peer = parse_peer(peer)
+        if not (peer_timeout_s > 0):
+            raise LinkError(f"peer timeout: expected > 0 s, got {peer_timeout_s!r}")
+        self.signing_key = signing_key
+        self._io = (_Serial(self.endpoint) if kind == "serial" else _Replay(self.endpoint) if kind == "tlog"
+                    else _Udp(self.endpoint, peer, peer_timeout_s))
         self.mav = mavlink.MAVLink(None, srcSystem=source_system, srcComponent=source_component)
         self.mav.robust_parsing = True
         self._ready: deque = deque()
@@ -297,14 +352,48 @@ class Link:
             return self._ready.popleft()
         data = self._io.read(timeout_s)
         if data:
-            self.feed(data, datagram=self._datagrams)
+            self._take(data)
         # drain what is already in the OS buffer without waiting again
         while not self._ready:
             data = self._io.read(0.0)
             if not data:
                 break
-            self.feed(data, datagram=self._datagrams)
+            self._take(data)
         return self._ready.popleft() if self._ready else None
+
+    def _take(self, data: bytes) -> None:
+        """Parse what the transport read; a udpin datagram from a sender that is not the peer
+        makes it the peer if it holds a packet that proves it (`proves_peer`), else its packets
+        are dropped and the datagram counted as foreign."""
+        io = self._io
+        candidate = getattr(io, "candidate", None)
+        if candidate is None:
+            self.feed(data, datagram=self._datagrams)
+            return
+        io.candidate = None
+        n0 = len(self._ready)
+        self.feed(data, datagram=True)
+        if any(self.proves_peer(self._ready[i]) for i in range(n0, len(self._ready))):
+            io.lock(candidate)
+            return
+        io.foreign_datagrams += 1
+        while len(self._ready) > n0:  # an unproven sender's packets are not delivered
+            self._ready.pop()
+
+    def proves_peer(self, msg) -> bool:
+        """Whether `msg` may make its sender a udpin link's peer: any good MAVLink packet, or with
+        `signing_key` one whose MAVLink 2 signature verifies with the key."""
+        if self.signing_key is None:
+            return True
+        from .signing import signature_fields, signature_ok
+
+        buf = bytes(msg.get_msgbuf())
+        return signature_fields(buf) is not None and signature_ok(buf, self.signing_key)
+
+    @property
+    def peer(self):
+        """Where sends go: (host, port), or None (udpin nobody proved itself to yet; serial, replay)."""
+        return getattr(self._io, "peer", None)
 
     def feed(self, data: bytes, datagram: bool = False) -> None:
         """Parse bytes (from the transport or a replay) into the queue of good messages.
@@ -391,7 +480,13 @@ class Link:
             "garbage_bytes": self.garbage_bytes,
             "send_failures": self.send_failures,
             "foreign_datagrams": getattr(self._io, "foreign_datagrams", 0),
+            "peer_changes": getattr(self._io, "peer_changes", 0),
         }
+
+    @property
+    def foreign_datagrams(self) -> int:
+        """Datagrams from senders other than the peer: dropped unread, or unproven (udpin, udpout)."""
+        return getattr(self._io, "foreign_datagrams", 0)
 
     def close(self) -> None:
         self._io.close()

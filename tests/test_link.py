@@ -239,3 +239,125 @@ def test_a_udpout_link_reads_only_its_peer_and_counts_the_rest():
         link.close()
         peer.close()
         stranger.close()
+
+
+# -- a udpin link's peer is locked (issue 15 item 2) ----------------------------------------------
+
+def _sock(host: str = "127.0.0.1"):
+    import socket
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind((host, 0))
+    s.settimeout(0.3)
+    return s
+
+
+def _got(sock) -> list:
+    """Datagrams waiting on a plain socket (what a sender would get back)."""
+    import socket
+
+    out = []
+    while True:
+        try:
+            out.append(sock.recv(65535))
+        except (socket.timeout, BlockingIOError):
+            return out
+
+
+def _hb(src: int = 255, key: bytes | None = None) -> bytes:
+    mav = mavlink.MAVLink(None, src, 190)
+    if key is not None:
+        from onboard.signing import enable_signing
+
+        enable_signing(mav, key)
+    return bytes(heartbeat().pack(mav))
+
+
+def test_a_udpin_link_keeps_the_first_peer_that_speaks_mavlink():
+    """Today's hijack: one junk byte from another port redirected every reply to its sender.
+    The first sender of valid MAVLink keeps the link; junk before it locks nothing; another
+    sender's datagrams (junk or valid MAVLink) are dropped unread, counted, and never answered."""
+    server = Link("udpin:127.0.0.1:0")
+    ground, attacker = _sock(), _sock()
+    addr = server.local_address
+    try:
+        attacker.sendto(b"\x00", addr)  # junk before anyone: proves nothing
+        assert server.recv(0.3) is None and not server.has_peer
+        ground.sendto(_hb(), addr)
+        assert server.recv(1.0).get_type() == "HEARTBEAT" and server.peer == ground.getsockname()
+        attacker.sendto(b"\x00", addr)
+        attacker.sendto(_hb(src=99), addr)
+        assert server.recv(0.3) is None  # neither is read
+        server.send(heartbeat(custom_mode=5))
+        assert len(_got(ground)) == 1 and _got(attacker) == []
+        assert server.stats()["foreign_datagrams"] == 3  # the first junk byte (unproven) and both later ones
+        assert server.stats()["peer_changes"] == 1
+        ground.sendto(_hb(), addr)
+        assert server.recv(1.0) is not None  # the peer is still read
+    finally:
+        server.close()
+        ground.close()
+        attacker.close()
+
+
+def test_a_silent_udpin_peer_is_replaced_after_its_timeout():
+    server = Link("udpin:127.0.0.1:0", peer_timeout_s=0.3)
+    first, second = _sock(), _sock()
+    try:
+        first.sendto(_hb(), server.local_address)
+        assert server.recv(1.0) is not None
+        second.sendto(_hb(), server.local_address)
+        assert server.recv(0.1) is None and server.peer == first.getsockname()  # within the timeout
+        time.sleep(0.35)
+        second.sendto(b"junk", server.local_address)  # junk does not take a silent peer's place
+        assert server.recv(0.2) is None and server.peer == first.getsockname()
+        second.sendto(_hb(), server.local_address)
+        assert server.recv(1.0) is not None and server.peer == second.getsockname()
+        assert server.stats()["peer_changes"] == 2
+    finally:
+        server.close()
+        first.close()
+        second.close()
+
+
+def test_with_a_signing_key_only_a_signed_sender_becomes_the_peer():
+    import hashlib
+
+    key = hashlib.sha256(b"link peer").digest()
+    server = Link("udpin:127.0.0.1:0", signing_key=key)
+    attacker, ground = _sock(), _sock()
+    try:
+        attacker.sendto(_hb(), server.local_address)  # unsigned
+        attacker.sendto(_hb(key=hashlib.sha256(b"other").digest()), server.local_address)  # wrong key
+        assert server.recv(0.3) is None and not server.has_peer
+        ground.sendto(_hb(key=key), server.local_address)
+        m = server.recv(1.0)
+        assert m is not None and server.peer == ground.getsockname()
+        assert server.stats()["foreign_datagrams"] == 2
+    finally:
+        server.close()
+        attacker.close()
+        ground.close()
+
+
+def test_a_fixed_udpin_peer_is_the_only_one_read():
+    ground, other = _sock(), _sock()
+    host, port = ground.getsockname()
+    server = Link("udpin:127.0.0.1:0", peer=f"{host}:{port}")
+    try:
+        assert server.has_peer  # it can send before the peer speaks
+        other.sendto(_hb(), server.local_address)
+        assert server.recv(0.3) is None and server.stats()["foreign_datagrams"] == 1
+        server.send(heartbeat())
+        assert len(_got(ground)) == 1 and _got(other) == []
+        ground.sendto(_hb(), server.local_address)
+        assert server.recv(1.0) is not None
+    finally:
+        server.close()
+        ground.close()
+        other.close()
+    for bad in ("nohost", "127.0.0.1:0", "127.0.0.1:99999"):
+        with pytest.raises(LinkError, match="expected HOST:PORT"):
+            Link("udpin:127.0.0.1:0", peer=bad)
+    with pytest.raises(LinkError, match="udpin links only"):
+        Link("udpout:127.0.0.1:9", peer="127.0.0.1:9")
