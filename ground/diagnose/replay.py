@@ -3,12 +3,10 @@ multiple-shooting windows re-initialised from the measurements.
 
 Pure math on arrays: a `Recording` and a parameter vector in, frozen results out.
 
-1. `reconstruct` puts every stream on one uniform grid (the IMU's) and estimates the full
-   rigid-body state from the measurements alone: attitude by a complementary filter (gyro
-   integrated, pulled toward ATTITUDE or the motion-capture quaternion with time constant
-   `ATT_TAU_S`), depth from pressure, linear velocity from the motion-capture position (a
-   Savitzky-Golay derivative) or, without motion capture, from the depth rate and the specific
-   force integrated through a leaky integrator (horizontal velocity is then only approximate).
+1. `reconstruct` puts every stream on one uniform grid (the IMU's) and estimates the rigid-body
+   state with the model (`estimate.smooth`: EKF + RTS over the nominal vehicle driven by the
+   commands, with a generalised-force disturbance and IMU biases), so horizontal velocity comes
+   from the dynamics and the measurements together, with or without motion capture.
    Commands are the SERVO_OUTPUT_RAW PWM held from the sample on (spec 6).
 2. `actuator_run` integrates what the actuators do (propeller speeds, joint angles, the seed-004
    transient filters) from the commands alone: it does not depend on the body's motion, so one
@@ -36,10 +34,10 @@ from onboard.jit import MODEL_SOURCE, key_caches_on
 from onboard.pwm import pwm_to_command
 from onboard.vehicle import Vehicle
 
-ATT_TAU_S = 1.0  # complementary-filter time constant: gyro above ~0.16 Hz, attitude below
+from . import estimate
+
 SMOOTH_S = 0.21  # Savitzky-Golay window for rates and accelerations (order 2)
 MOCAP_SMOOTH_S = 0.31  # Savitzky-Golay window for velocity from motion-capture position
-LEAK_TAU_S = 8.0  # leaky integration of horizontal acceleration when there is no motion capture
 SIGNALS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z", "depth", "roll", "pitch", "yaw")
 AXES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
 
@@ -75,6 +73,7 @@ class Trajectory:
     has_mocap: bool
     correction: SensorCorrection = field(default_factory=SensorCorrection)
     noise_probe: np.ndarray | None = None  # (N, 10) white noise like each signal's, on the grid
+    estimate: object = field(default=None, repr=False)  # estimate.Estimate: the smoothed state, disturbance
 
 
 # ------------------------------------------------------------------------------------------------
@@ -142,45 +141,6 @@ def held_commands(rec, vehicle: Vehicle, t_grid) -> np.ndarray:
     return pwm_to_commands(vehicle, rec.servo.pwm_us)[idx]
 
 
-@njit(cache=True)
-def _complementary(gyro, q_meas, have_meas, dt, tau, q0):
-    """q' = 1/2 q (x) [0, w] integrated, plus a pull toward q_meas: w += (2/tau) vec(q^-1 q_meas)."""
-    n = gyro.shape[0]
-    out = np.empty((n, 4))
-    q = q0.copy()
-    for k in range(n):
-        out[k] = q
-        wx, wy, wz = gyro[k, 0], gyro[k, 1], gyro[k, 2]
-        if have_meas:
-            m = q_meas[k]
-            # e = q^-1 (x) m
-            w, a, b, c = q[0], -q[1], -q[2], -q[3]
-            ew = w * m[0] - a * m[1] - b * m[2] - c * m[3]
-            ex = w * m[1] + a * m[0] + b * m[3] - c * m[2]
-            ey = w * m[2] - a * m[3] + b * m[0] + c * m[1]
-            ez = w * m[3] + a * m[2] - b * m[1] + c * m[0]
-            s = 1.0 if ew >= 0 else -1.0
-            wx += 2.0 * s * ex / tau
-            wy += 2.0 * s * ey / tau
-            wz += 2.0 * s * ez / tau
-        # exact rotation over dt with constant body rate
-        ang = math.sqrt(wx * wx + wy * wy + wz * wz) * dt
-        if ang > 1e-12:
-            sa = math.sin(ang / 2) / (ang / dt)
-            dw, dx, dy, dz = math.cos(ang / 2), wx * sa, wy * sa, wz * sa
-        else:
-            dw, dx, dy, dz = 1.0, wx * dt / 2, wy * dt / 2, wz * dt / 2
-        w, a, b, c = q[0], q[1], q[2], q[3]
-        q = np.array([
-            w * dw - a * dx - b * dy - c * dz,
-            w * dx + a * dw + b * dz - c * dy,
-            w * dy - a * dz + b * dw + c * dx,
-            w * dz + a * dy - b * dx + c * dw,
-        ])
-        q /= math.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
-    return out
-
-
 def _euler_to_quat_rows(e):
     r, p, y = e[:, 0] / 2, e[:, 1] / 2, e[:, 2] / 2
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
@@ -237,45 +197,35 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
     z = env.surface_depth + (z - env.p_atm) / (env.rho * env.g)
     w_s = _odd(round(SMOOTH_S / dt))
     w_m = _odd(round(MOCAP_SMOOTH_S / dt))
-    # attitude
-    q_meas = None
+    command = held_commands(rec, vehicle, t)
+    # the state, estimated with the model (estimate.py): EKF + RTS over the nominal vehicle driven by
+    # the commands, with a generalised-force disturbance and IMU biases
+    p = model.pack_params(vehicle)
+    act = actuator_run_commands(command, dt, p, vehicle.n_units)
+    meas = estimate.measurements(rec, vehicle, t, d, corr.gyro_bias, corr.accel_bias)
+    est = estimate.smooth(meas, act, command, p, estimate.initial_state(meas, env.surface_depth))
+    xs = est.x
+    pos = xs[:, 0:3].copy()
+    quat = est.quat()
+    gyro = gyro - xs[:, estimate.I_BG:estimate.I_BG + 3]
+    accel = accel - xs[:, estimate.I_BA:estimate.I_BA + 3]
+    v_body = xs[:, 6:9].copy()
     euler_raw = np.zeros((len(t), 3))
+    q_meas = None
     if rec.attitude is not None and len(rec.attitude.time_s) > 2:
         e = np.array(rec.attitude.euler_rad, float)
         e[:, 2] = np.unwrap(e[:, 2])
         euler_raw = _interp(t, rec.attitude.time_s, e)
         q_meas = _euler_to_quat_rows(_interp(t, rec.attitude.time_s - d, e))
     if rec.mocap is not None and len(rec.mocap.time_s) > 2:
-        # the pool's motion capture, when there is one, is the better attitude reference
-        # (and carries no vehicle sensor delay)
         qm = _continuous(np.array(rec.mocap.quat_wxyz, float))
         q_meas = _interp(t, rec.mocap.time_s, qm)
         q_meas /= np.linalg.norm(q_meas, axis=1, keepdims=True)
         if rec.attitude is None:
             euler_raw = _quat_to_euler_rows(q_meas)
             euler_raw[:, 2] = np.unwrap(euler_raw[:, 2])
-    if q_meas is not None:
-        q0 = q_meas[0]
-    else:  # level from the first second of specific force, yaw 0
-        f0 = accel[: max(1, int(1.0 / dt))].mean(axis=0)
-        roll0, pitch0 = math.atan2(-f0[1], -f0[2]), math.atan2(f0[0], math.hypot(f0[1], f0[2]))
-        q0 = _euler_to_quat_rows(np.array([[roll0, pitch0, 0.0]]))[0]
-        euler_raw = np.zeros((len(t), 3))
-    quat = _complementary(gyro, q_meas if q_meas is not None else np.zeros((1, 4)),
-                          q_meas is not None, dt, ATT_TAU_S, np.asarray(q0, float))
-    if q_meas is not None:
-        # two-sided: the same filter run backward in time (body rates negated), averaged with
-        # the forward pass, so the estimate has no lag and half the error variance
-        back = _complementary(np.ascontiguousarray(-gyro[::-1]), np.ascontiguousarray(q_meas[::-1]),
-                              True, dt, ATT_TAU_S, np.asarray(q_meas[-1], float))[::-1]
-        # the backward pass's sample k is the attitude at k + 1 propagated back one step: shift
-        back = np.vstack([back[1:], back[-1:]])
-        back *= np.where(np.sum(back * quat, axis=1, keepdims=True) < 0, -1.0, 1.0)
-        quat = quat + back
-        quat /= np.linalg.norm(quat, axis=1, keepdims=True)
     R = rotation_rows(quat)
     g_body = env.g * R[:, 2, :]  # R^T [0, 0, g]
-    # velocity
     has_mocap = rec.mocap is not None and len(rec.mocap.time_s) > 10
     kinematic = np.zeros((len(t), 6))
     if q_meas is not None:
@@ -290,20 +240,11 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
         kinematic[:, :3] = savgol_filter(gyro, w_s, 2, axis=0, mode="interp") - w_att
     if has_mocap:
         # motion capture is the pool's, not the vehicle's: no sensor delay on it
-        pos = _interp(t, rec.mocap.time_s, rec.mocap.pos_ned_m)
-        v_ned = savgol_filter(pos, w_m, 2, deriv=1, delta=dt, axis=0, mode="interp")
-        a_ned = savgol_filter(pos, w_m, 2, deriv=2, delta=dt, axis=0, mode="interp")
+        mpos = _interp(t, rec.mocap.time_s, rec.mocap.pos_ned_m)
+        a_ned = savgol_filter(mpos, w_m, 2, deriv=2, delta=dt, axis=0, mode="interp")
         f_ned = savgol_filter(np.einsum("nij,nj->ni", R, accel), w_m, 2, axis=0, mode="interp")
         # specific force = R^T (a_ned - g e3): accel - mocap, in body axes
         kinematic[:, 3:] = np.einsum("nji,nj->ni", R, f_ned - a_ned + np.array([0.0, 0.0, env.g]))
-    else:
-        pos = np.column_stack([np.zeros(len(t)), np.zeros(len(t)), z])
-        a_ned = np.einsum("nij,nj->ni", R, accel) + np.array([0.0, 0.0, env.g])
-        v_ned = np.zeros((len(t), 3))
-        v_ned[:, :2] = _leaky(a_ned[:, :2], dt, LEAK_TAU_S)
-        v_ned[:, 2] = savgol_filter(z, w_m, 2, deriv=1, delta=dt, mode="interp")
-        pos[:, 2] = z
-    v_body = np.einsum("nji,nj->ni", R, v_ned)
     omega = savgol_filter(gyro, w_s, 2, axis=0, mode="interp")
     omega_dot = savgol_filter(gyro, w_s, 2, deriv=1, delta=dt, axis=0, mode="interp")
     # v' = f + R^T g e3 - w x v (spec 5 inverted)
@@ -311,9 +252,6 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
     v_dot = savgol_filter(lin_acc, w_s, 2, axis=0, mode="interp")
     nu = np.column_stack([v_body, omega])
     nu_dot = np.column_stack([v_dot, omega_dot])
-    if not has_mocap:
-        pos[:, 2] = savgol_filter(z, w_s, 2, mode="interp")
-    command = held_commands(rec, vehicle, t)
     # a white-noise probe per signal: noise of the level estimated from the native samples,
     # drawn at the native sample times and put on the grid the same way as the signal
     rng = np.random.default_rng(7)
@@ -341,22 +279,7 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
     for a in (t, command, pos, quat, nu, nu_dot, lin_acc, gyro, kinematic, *measured.values()):
         a.setflags(write=False)
     return Trajectory(t, dt, command, pos, quat, nu, nu_dot, lin_acc, gyro, kinematic, measured,
-                      has_mocap, corr, noise_probe)
-
-
-@njit(cache=True)
-def _leaky_kernel(a, dt, tau):
-    out = np.zeros_like(a)
-    v = np.zeros(a.shape[1])
-    k = math.exp(-dt / tau)
-    for i in range(a.shape[0]):
-        out[i] = v
-        v = k * v + dt * a[i]
-    return out
-
-
-def _leaky(a, dt, tau):
-    return _leaky_kernel(np.ascontiguousarray(a), dt, tau)
+                      has_mocap, corr, noise_probe, est)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -428,15 +351,17 @@ def _actuator_run(command, p, dt, substeps, xa0):
 
 
 def actuator_run(traj: Trajectory, p: np.ndarray, n_units: int, substeps: int = 2, command=None) -> np.ndarray:
-    """(N, 3k + 20k) actuator and transient-filter states along the grid (module doc 2).
+    """(N, 3k + 20k) actuator and transient-filter states along the grid (module doc 2)."""
+    return actuator_run_commands(traj.command if command is None else command, traj.dt_s, p, n_units, substeps)
 
-    Initial state as spec 6: propellers at rest, joints at the first command, filters zero.
-    """
+
+def actuator_run_commands(command: np.ndarray, dt: float, p: np.ndarray, n_units: int, substeps: int = 2) -> np.ndarray:
+    """`actuator_run` on a held-command array. Initial state as spec 6: propellers at rest,
+    joints at the first command, filters zero."""
     k = n_units
     xa0 = np.zeros(3 * k + model.N_TF_STATES * k)
-    command = traj.command if command is None else command
     xa0[k:3 * k] = command[0, k:3 * k]
-    return _actuator_run(np.ascontiguousarray(command), p, traj.dt_s, substeps, xa0)
+    return _actuator_run(np.ascontiguousarray(command), p, dt, substeps, xa0)
 
 
 @njit(cache=True)

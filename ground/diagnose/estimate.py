@@ -1,0 +1,526 @@
+"""Estimate the motion with the model: an extended Kalman filter and RTS smoother over the nominal
+vehicle model driven by the recorded commands, with a 6-axis generalised-force disturbance.
+
+The flight-test way (Jategaonkar, *Flight Vehicle System Identification*, 2nd ed., ch. 5 and 7:
+the filter-error method; Rauch, Tung & Striebel 1965 for the smoother): the unmeasured states
+(horizontal velocity above all) come from the dynamics and the measurements together, not from
+the sensors alone. What the nominal model cannot explain is carried by a disturbance state
+
+    d = [X, Y, Z, K, M, N]  (N, N m, body axes),  d' = w_d (random walk),
+
+acting through the nominal mass matrix: nu' = f_model(x, u) + M0^-1 d. Its smoothed estimate with
+its covariance is *where the model is wrong*, over time.
+
+State (NX = 24), one flat vector:
+    0:3 NED position, 3:6 ZYX Euler angles (roll, pitch, yaw), 6:12 nu = [u v w p q r],
+    12:18 d, 18:21 gyro bias (rad/s), 21:24 accelerometer bias (m/s^2).
+The actuators (propeller speeds, joint angles, seed-004 filter states) depend on the commands
+only (spec 4), so they are integrated once beforehand (`replay.actuator_run`) and enter as inputs.
+
+Measurements (spec 5), each a scalar sequential update (diagonal R):
+    gyro = w + b_g;  accel = v' + w x v - R^T [0, 0, g] + b_a  (v' from the model, so the
+    accelerometer measures the force balance, disturbance included);  depth = z - surface;
+    ATTITUDE roll, pitch, yaw;  motion capture position and attitude, when the pool has one.
+Jacobians by forward differences of the compiled model (`onboard.model.derivative`: one
+description of the physics, the plant's own); covariance propagated with F = I + A h + (A h)^2/2.
+
+The smoother stores the filter only at chunk starts and re-runs each chunk on the way back, so
+memory stays bounded by the chunk (2000 steps), not by the recording.
+Pure: arrays in, a frozen `Estimate` out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from onboard import model
+from onboard.jit import MODEL_SOURCE, key_caches_on
+
+NX = 24
+I_POS, I_ATT, I_NU, I_D, I_BG, I_BA = 0, 3, 6, 12, 18, 21
+CHUNK = 2000
+GATE_CHI2 = 36.0  # a scalar innovation beyond 6 sigma is an outlier: skipped and counted
+
+# Measurement kinds, in the order of `Estimate.innovation_rms`.
+MEAS = ("gyro", "accel", "depth", "attitude", "mocap_pos", "mocap_att")
+
+
+@dataclass(frozen=True)
+class Noise:
+    """Process-noise densities (continuous-time, per second) and the initial uncertainty."""
+
+    nu_lin_m_s2: float = 0.02  # unmodelled linear acceleration, white (m/s^2 / sqrt(Hz))
+    nu_ang_rad_s2: float = 0.05  # unmodelled angular acceleration, white
+    d_lin_n_s: float = 0.5  # disturbance force random walk (N per sqrt(s))
+    d_ang_nm_s: float = 0.02  # disturbance moment random walk (N m per sqrt(s))
+    gyro_bias_rw: float = 1e-5  # rad/s per sqrt(s)
+    accel_bias_rw: float = 1e-4  # m/s^2 per sqrt(s)
+    p0_vel_m_s: float = 0.2
+    p0_rate_rad_s: float = 0.1
+    p0_d_lin_n: float = 2.0
+    p0_d_ang_nm: float = 0.1
+    p0_gyro_bias: float = 0.02
+    p0_accel_bias: float = 0.2
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """Everything the filter reads, on the filter grid (one row per step; `ok` says which exist)."""
+
+    time_s: np.ndarray  # (N,)
+    dt_s: float
+    imu: np.ndarray  # (N, 6) gyro, accel
+    imu_ok: np.ndarray  # (N,) bool
+    depth_m: np.ndarray  # (N,)
+    depth_ok: np.ndarray
+    att_rad: np.ndarray  # (N, 3)
+    att_ok: np.ndarray
+    mocap: np.ndarray  # (N, 6) position, Euler angles
+    mocap_ok: np.ndarray
+    sigma: np.ndarray  # (6,) per kind of MEAS: one sigma per scalar (gyro, accel, depth, att, mocap pos, mocap att)
+    reset: np.ndarray  # (N,) bool: a segment starts here (after a gap): kinematic states re-opened
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The smoothed trajectory, its disturbance and the filter's likelihood."""
+
+    time_s: np.ndarray
+    x: np.ndarray  # (N, NX) smoothed state
+    std: np.ndarray  # (N, NX) smoothed standard deviation
+    nll_steps: np.ndarray  # (N,) negative log-likelihood of each step's innovations (filter)
+    n_scalar: np.ndarray  # (N,) scalar measurements used at each step
+    outliers: int  # innovations beyond the gate, skipped
+    innovation_rms: dict  # MEAS kind -> RMS of normalised innovations (1 when the model and noise agree)
+
+    @property
+    def disturbance(self) -> np.ndarray:
+        return self.x[:, I_D:I_D + 6]
+
+    @property
+    def disturbance_std(self) -> np.ndarray:
+        return self.std[:, I_D:I_D + 6]
+
+    def quat(self) -> np.ndarray:
+        e = self.x[:, I_ATT:I_ATT + 3]
+        return np.array([model.euler_to_quat(r, p, y) for r, p, y in e]) if len(e) else np.zeros((0, 4))
+
+
+# ------------------------------------------------------------------------------------------------
+# Compiled kernels
+
+
+@njit(cache=True)
+def _dynamics(xe, act, u, p, minv, X, Xdot, out, acc):
+    """out = x_e' (NX) and acc = predicted accelerometer (3) at estimator state xe (module doc)."""
+    X[0:3] = xe[0:3]
+    X[3:7] = model.euler_to_quat(xe[3], xe[4], xe[5])
+    X[7:13] = xe[6:12]
+    X[13:] = act
+    model.derivative(X, u, p, Xdot)
+    for i in range(NX):
+        out[i] = 0.0
+    for i in range(3):
+        out[i] = Xdot[i]
+    for i in range(6):
+        s = 0.0
+        for j in range(6):
+            s += minv[i, j] * xe[I_D + j]
+        out[I_NU + i] = Xdot[7 + i] + s
+    ph, th = xe[3], xe[4]
+    cph, sph = math.cos(ph), math.sin(ph)
+    cth = math.cos(th)
+    if abs(cth) < 0.05:
+        cth = 0.05 if cth >= 0 else -0.05
+    tth = math.sin(th) / cth
+    pp, qq, rr = xe[9], xe[10], xe[11]
+    # Euler-angle rates (Fossen 2011 eq. 2.41)
+    out[3] = pp + sph * tth * qq + cph * tth * rr
+    out[4] = cph * qq - sph * rr
+    out[5] = (sph * qq + cph * rr) / cth
+    # accelerometer: f = v' + w x v - R^T g e3 + b_a (spec 5); R^T e3 = third row of R
+    R = model.rotation(X[3:7])
+    c0, c1, c2 = model.cross(pp, qq, rr, xe[6], xe[7], xe[8])
+    g = p[model.P_G]
+    acc[0] = out[6] + c0 - g * R[2, 0] + xe[I_BA]
+    acc[1] = out[7] + c1 - g * R[2, 1] + xe[I_BA + 1]
+    acc[2] = out[8] + c2 - g * R[2, 2] + xe[I_BA + 2]
+
+
+@njit(cache=True)
+def _step(xe, act, u, p, minv, h, X, Xdot):
+    """RK4 of the rigid-body and disturbance states over h (actuators held)."""
+    k1, k2, k3, k4 = np.empty(NX), np.empty(NX), np.empty(NX), np.empty(NX)
+    acc = np.empty(3)
+    _dynamics(xe, act, u, p, minv, X, Xdot, k1, acc)
+    _dynamics(xe + 0.5 * h * k1, act, u, p, minv, X, Xdot, k2, acc)
+    _dynamics(xe + 0.5 * h * k2, act, u, p, minv, X, Xdot, k3, acc)
+    _dynamics(xe + h * k3, act, u, p, minv, X, Xdot, k4, acc)
+    return xe + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+@njit(cache=True)
+def _jacobians(xe, act, u, p, minv, X, Xdot, A, Hacc, acc0):
+    """A = d x_e'/d x_e (NX x NX) and Hacc = d accel/d x_e (3 x NX) by forward differences on the
+    kinematic states; the disturbance and the biases enter linearly (exact columns)."""
+    f0 = np.empty(NX)
+    f1 = np.empty(NX)
+    a1 = np.empty(3)
+    _dynamics(xe, act, u, p, minv, X, Xdot, f0, acc0)
+    A[:, :] = 0.0
+    Hacc[:, :] = 0.0
+    xp = xe.copy()
+    for j in range(12):
+        eps = 1e-6 if j >= 3 else 1e-5
+        xp[j] = xe[j] + eps
+        _dynamics(xp, act, u, p, minv, X, Xdot, f1, a1)
+        xp[j] = xe[j]
+        for i in range(12):
+            A[i, j] = (f1[i] - f0[i]) / eps
+        for i in range(3):
+            Hacc[i, j] = (a1[i] - acc0[i]) / eps
+    for i in range(6):
+        for j in range(6):
+            A[I_NU + i, I_D + j] = minv[i, j]
+    for i in range(3):
+        for j in range(6):
+            Hacc[i, I_D + j] = minv[i, j]
+        Hacc[i, I_BA + i] = 1.0
+
+
+@njit(cache=True)
+def _wrap(a):
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True)
+def _scalar_update(x, P, H, z_minus_h, r, is_angle):
+    """One scalar Kalman update (P - P H H^T P / s); returns (nll term, used, normalised v^2)."""
+    n = x.shape[0]
+    PH = P @ H
+    s = 0.0
+    for i in range(n):
+        s += H[i] * PH[i]
+    s += r
+    v = _wrap(z_minus_h) if is_angle else z_minus_h
+    z2 = v * v / s
+    if z2 > GATE_CHI2 or not math.isfinite(z2):
+        return 0.0, 0, 0.0
+    for i in range(n):
+        x[i] += PH[i] / s * v
+    for i in range(n):
+        for j in range(n):
+            P[i, j] -= PH[i] * PH[j] / s
+    return 0.5 * (z2 + math.log(2.0 * math.pi * s)), 1, z2
+
+
+@njit(cache=True)
+def _filter(x0, P0, act, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, att, att_ok,
+            mocap, mocap_ok, sig, surf, reset, p_reset, store, xs_f, Ps_f, xs_p, Ps_p, Fs,
+            nll, nsc, inno_ss, inno_n):
+    """Forward EKF over len(cmd) steps from (x0, P0); stores filter and prediction when `store`.
+
+    Step k: update with the measurements of row k (state at t_k), then predict to t_{k+1}.
+    Returns the state and covariance predicted past the last row, and the outlier count.
+    """
+    n = cmd.shape[0]
+    na = act.shape[1]
+    X = np.zeros(13 + na)
+    Xdot = np.zeros(13 + na)
+    x = x0.copy()
+    P = P0.copy()
+    A = np.zeros((NX, NX))
+    Hacc = np.zeros((3, NX))
+    acc0 = np.zeros(3)
+    H = np.zeros(NX)
+    I = np.eye(NX)
+    outliers = 0
+    for k in range(n):
+        if reset[k]:
+            for i in range(12):
+                for j in range(NX):
+                    P[i, j] = 0.0
+                    P[j, i] = 0.0
+                P[i, i] = p_reset[i]
+        _jacobians(x, act[k], cmd[k], p, minv, X, Xdot, A, Hacc, acc0)
+        xprior = x.copy()
+        l = 0.0
+        m = 0
+        # (kind, state index or -1 for the accelerometer row, measured value, angle?) per scalar
+        for kind in range(6):
+            if kind <= 1:
+                ok = imu_ok[k]
+            elif kind == 2:
+                ok = depth_ok[k]
+            elif kind == 3:
+                ok = att_ok[k]
+            else:
+                ok = mocap_ok[k]
+            if not ok:
+                continue
+            for i in range(1 if kind == 2 else 3):
+                H[:] = 0.0
+                angle = False
+                if kind == 0:  # gyro = w + b_g
+                    H[I_NU + 3 + i] = 1.0
+                    H[I_BG + i] = 1.0
+                    v = imu[k, i] - x[I_NU + 3 + i] - x[I_BG + i]
+                elif kind == 1:  # accelerometer, linearised at the prior
+                    hv = acc0[i]
+                    for j in range(NX):
+                        H[j] = Hacc[i, j]
+                        hv += Hacc[i, j] * (x[j] - xprior[j])
+                    v = imu[k, 3 + i] - hv
+                elif kind == 2:  # depth = z - surface (pressure, spec 5)
+                    H[2] = 1.0
+                    v = depth[k] - (x[2] - surf)
+                elif kind == 3:  # ATTITUDE
+                    H[I_ATT + i] = 1.0
+                    v = att[k, i] - x[I_ATT + i]
+                    angle = True
+                elif kind == 4:  # motion-capture position
+                    H[i] = 1.0
+                    v = mocap[k, i] - x[i]
+                else:  # motion-capture attitude
+                    H[I_ATT + i] = 1.0
+                    v = mocap[k, 3 + i] - x[I_ATT + i]
+                    angle = True
+                ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle)
+                l += ll
+                m += used
+                outliers += 1 - used
+                inno_ss[kind] += z2
+                inno_n[kind] += used
+        x[I_ATT + 2] = _wrap(x[I_ATT + 2])
+        P = 0.5 * (P + P.T)
+        nll[k] = l
+        nsc[k] = m
+        if store:
+            xs_f[k] = x
+            Ps_f[k] = P
+        # predict to t_{k+1}: A re-evaluated at the posterior would be better; the prior's is
+        # within the linearisation error at these step sizes
+        Ah = A * h
+        F = I + Ah + 0.5 * (Ah @ Ah)
+        x = _step(x, act[k], cmd[k], p, minv, h, X, Xdot)
+        P = F @ P @ F.T
+        for i in range(NX):
+            P[i, i] += qdiag[i] * h
+        if store:
+            xs_p[k] = x
+            Ps_p[k] = P
+            Fs[k] = F
+    return x, P, outliers
+
+
+@njit(cache=True)
+def _rts(xs_f, Ps_f, xs_p, Ps_p, Fs, x_next, P_next, xs, stds):
+    """Rauch-Tung-Striebel backward pass over one chunk, from the smoothed state after its end.
+
+    C_k = P_k|k F_k^T P_k+1|k^-1;  x_k|N = x_k|k + C_k (x_k+1|N - x_k+1|k);
+    P_k|N = P_k|k + C_k (P_k+1|N - P_k+1|k) C_k^T.
+    """
+    n = xs_f.shape[0]
+    xn = x_next.copy()
+    Pn = P_next.copy()
+    for k in range(n - 1, -1, -1):
+        C = Ps_f[k] @ Fs[k].T @ np.linalg.inv(Ps_p[k])
+        dx = xn - xs_p[k]
+        dx[I_ATT + 2] = _wrap(dx[I_ATT + 2])
+        xn = xs_f[k] + C @ dx
+        Pn = Ps_f[k] + C @ (Pn - Ps_p[k]) @ C.T
+        Pn = 0.5 * (Pn + Pn.T)
+        xs[k] = xn
+        for i in range(NX):
+            stds[k, i] = math.sqrt(max(Pn[i, i], 0.0))
+    return Pn
+
+
+key_caches_on(globals(), MODEL_SOURCE)
+
+
+# ------------------------------------------------------------------------------------------------
+# Python side
+
+
+def process_noise(noise: Noise) -> np.ndarray:
+    q = np.zeros(NX)
+    q[I_NU:I_NU + 3] = noise.nu_lin_m_s2 ** 2
+    q[I_NU + 3:I_NU + 6] = noise.nu_ang_rad_s2 ** 2
+    q[I_D:I_D + 3] = noise.d_lin_n_s ** 2
+    q[I_D + 3:I_D + 6] = noise.d_ang_nm_s ** 2
+    q[I_BG:I_BG + 3] = noise.gyro_bias_rw ** 2
+    q[I_BA:I_BA + 3] = noise.accel_bias_rw ** 2
+    return q
+
+
+def initial_covariance(noise: Noise) -> np.ndarray:
+    s = np.zeros(NX)
+    s[I_POS:I_POS + 3] = 0.05
+    s[I_ATT:I_ATT + 3] = 0.05
+    s[I_NU:I_NU + 3] = noise.p0_vel_m_s
+    s[I_NU + 3:I_NU + 6] = noise.p0_rate_rad_s
+    s[I_D:I_D + 3] = noise.p0_d_lin_n
+    s[I_D + 3:I_D + 6] = noise.p0_d_ang_nm
+    s[I_BG:I_BG + 3] = noise.p0_gyro_bias
+    s[I_BA:I_BA + 3] = noise.p0_accel_bias
+    return np.diag(s ** 2)
+
+
+def nominal_mass_inverse(p: np.ndarray) -> np.ndarray:
+    """M0^-1, the nominal mass matrix (fully submerged, away from walls) inverted (Fossen eq. 3.44)."""
+    return np.linalg.inv(model.mass_matrix(p, 1.0, 1.0))
+
+
+def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, x0: np.ndarray,
+           noise: Noise = Noise()) -> Estimate:
+    """EKF forward, RTS backward (module doc), chunked so memory is bounded by CHUNK steps."""
+    n = len(meas.time_s)
+    h = meas.dt_s
+    minv = nominal_mass_inverse(p)
+    q = process_noise(noise)
+    P0 = initial_covariance(noise)
+    p_reset = np.diag(P0)[:12].copy()
+    p_reset[I_POS:I_POS + 2] = 10.0 ** 2  # after a gap the horizontal position is unknown
+    surf = float(p[model.P_SURF])
+    act = np.ascontiguousarray(act, float)
+    cmd = np.ascontiguousarray(cmd, float)
+    arrays = (meas.imu, meas.imu_ok, meas.depth_m, meas.depth_ok, meas.att_rad, meas.att_ok,
+              meas.mocap, meas.mocap_ok)
+    nll = np.zeros(n)
+    nsc = np.zeros(n, np.int64)
+    inno_ss = np.zeros(len(MEAS))
+    inno_n = np.zeros(len(MEAS), np.int64)
+    dummy3 = np.zeros((0, NX, NX))
+    dummy2 = np.zeros((0, NX))
+    starts = list(range(0, n, CHUNK))
+    checkpoints = []
+    x, P = np.asarray(x0, float).copy(), P0
+    outliers = 0
+    for s0 in starts:
+        s1 = min(s0 + CHUNK, n)
+        checkpoints.append((x.copy(), P.copy()))
+        sl = slice(s0, s1)
+        x, P, o = _filter(x, P, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
+                          meas.reset[sl], p_reset, False, dummy2, dummy3, dummy2, dummy3, dummy3,
+                          nll[sl], nsc[sl], inno_ss, inno_n)
+        outliers += o
+    xs = np.zeros((n, NX))
+    stds = np.zeros((n, NX))
+    x_next, P_next = x, P  # the prediction past the end: nothing after it to smooth with
+    for ci in range(len(starts) - 1, -1, -1):
+        s0 = starts[ci]
+        s1 = min(s0 + CHUNK, n)
+        m = s1 - s0
+        xf, Pf, xp, Pp, Fs = (np.zeros((m, NX)), np.zeros((m, NX, NX)), np.zeros((m, NX)),
+                              np.zeros((m, NX, NX)), np.zeros((m, NX, NX)))
+        sl = slice(s0, s1)
+        xc, Pc = checkpoints[ci]
+        _filter(xc, Pc, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
+                meas.reset[sl], p_reset, True, xf, Pf, xp, Pp, Fs, np.zeros(m), np.zeros(m, np.int64),
+                np.zeros(len(MEAS)), np.zeros(len(MEAS), np.int64))
+        P_next = _rts(xf, Pf, xp, Pp, Fs, x_next, P_next, xs[sl], stds[sl])
+        x_next = xs[s0].copy()
+    rms = {MEAS[i]: float(math.sqrt(inno_ss[i] / inno_n[i])) for i in range(len(MEAS)) if inno_n[i]}
+    for a in (xs, stds, nll):
+        a.setflags(write=False)
+    return Estimate(meas.time_s, xs, stds, nll, nsc, int(outliers), rms)
+
+
+
+# Floors of the estimated sensor noise: a quantised stream can show zero spread between samples.
+SIGMA_FLOOR = np.array([1e-3, 1e-2, 1e-3, 1e-3, 1e-4, 1e-3])
+
+
+def _on_grid(t_grid: np.ndarray, t: np.ndarray, y: np.ndarray):
+    """Samples put on the nearest grid step (the last one wins): (values, ok)."""
+    y = np.asarray(y, float).reshape(len(t), -1)
+    out = np.zeros((len(t_grid), y.shape[1]))
+    ok = np.zeros(len(t_grid), bool)
+    if len(t_grid) < 2 or not len(t):
+        return out, ok
+    dt = t_grid[1] - t_grid[0]
+    idx = np.rint((np.asarray(t) - t_grid[0]) / dt).astype(np.int64)
+    keep = (idx >= 0) & (idx < len(t_grid)) & np.isfinite(y).all(axis=1)
+    out[idx[keep]] = y[keep]
+    ok[idx[keep]] = True
+    return out, ok
+
+
+def measurements(rec, vehicle, t_grid: np.ndarray, delay_s: float = 0.0,
+                 gyro_bias=(0.0, 0.0, 0.0), accel_bias=(0.0, 0.0, 0.0)) -> Measurements:
+    """What the filter reads from a recording, on the grid; each sample stamped t describes the
+    vehicle at t - delay_s (spec 5); the given biases are taken off the IMU first."""
+    from .replay import white_noise_sigma
+
+    env = vehicle.environment
+    dt = float(t_grid[1] - t_grid[0])
+    n = len(t_grid)
+    sig = np.zeros(6)
+    imu_t = rec.imu.time_s - delay_s
+    imu = np.column_stack([rec.imu.gyro_frd_rad_s - np.asarray(gyro_bias),
+                           rec.imu.accel_frd_m_s2 - np.asarray(accel_bias)])
+    # IMU: interpolated onto the grid (the grid is the IMU's own period), ok inside its span
+    imu_g = np.column_stack([np.interp(t_grid, imu_t, imu[:, j]) for j in range(6)])
+    imu_ok = (t_grid >= imu_t[0] - 0.5 * dt) & (t_grid <= imu_t[-1] + 0.5 * dt)
+    sig[0] = float(np.mean(white_noise_sigma(rec.imu.gyro_frd_rad_s)))
+    sig[1] = float(np.mean(white_noise_sigma(rec.imu.accel_frd_m_s2)))
+    depth = (rec.pressure.press_abs_pa - env.p_atm) / (env.rho * env.g)
+    depth_g, depth_ok = _on_grid(t_grid, rec.pressure.time_s - delay_s, depth)
+    depth_ok &= depth_g[:, 0] > 0.01  # out of the water the sensor reads the air (max(depth, 0))
+    sig[2] = float(white_noise_sigma(depth)[0])
+    att_g, att_ok = np.zeros((n, 3)), np.zeros(n, bool)
+    if rec.attitude is not None and len(rec.attitude.time_s) > 2:
+        att_g, att_ok = _on_grid(t_grid, rec.attitude.time_s - delay_s, rec.attitude.euler_rad)
+        e = np.array(rec.attitude.euler_rad, float)
+        e[:, 2] = np.unwrap(e[:, 2])
+        sig[3] = float(np.mean(white_noise_sigma(e)))
+    moc_g, moc_ok = np.zeros((n, 6)), np.zeros(n, bool)
+    if rec.mocap is not None and len(rec.mocap.time_s) > 2:
+        from .replay import _quat_to_euler_rows
+
+        q = np.asarray(rec.mocap.quat_wxyz, float)
+        e = _quat_to_euler_rows(q / np.linalg.norm(q, axis=1, keepdims=True))
+        # motion capture is the pool's: no vehicle sensor delay on it
+        moc_g, moc_ok = _on_grid(t_grid, rec.mocap.time_s, np.column_stack([rec.mocap.pos_ned_m, e]))
+        sig[4] = float(np.mean(white_noise_sigma(rec.mocap.pos_ned_m)))
+        eu = e.copy()
+        eu[:, 2] = np.unwrap(eu[:, 2])
+        sig[5] = float(np.mean(white_noise_sigma(eu)))
+    sig = np.maximum(np.nan_to_num(sig), SIGMA_FLOOR)
+    # a gap of more than five grid steps in the IMU restarts the kinematic states after it
+    reset = np.zeros(n, bool)
+    gaps = np.nonzero(np.diff(imu_t) > 5 * dt)[0]
+    for i in gaps:
+        j = int(np.searchsorted(t_grid, imu_t[i + 1]))
+        if j < n:
+            reset[j] = True
+        imu_ok &= ~((t_grid > imu_t[i] + 0.5 * dt) & (t_grid < imu_t[i + 1] - 0.5 * dt))
+    arrays = [t_grid, imu_g, imu_ok, depth_g[:, 0], depth_ok, att_g, att_ok, moc_g, moc_ok, sig, reset]
+    for a in arrays:
+        a.setflags(write=False)
+    return Measurements(t_grid, dt, imu_g, imu_ok, depth_g[:, 0].copy(), depth_ok, att_g, att_ok, moc_g, moc_ok,
+                        sig, reset)
+
+
+def initial_state(meas: Measurements, surface_depth: float) -> np.ndarray:
+    """At rest (spec 6), at the first measured depth and attitude (motion capture first)."""
+    x = np.zeros(NX)
+    i = int(np.argmax(meas.depth_ok)) if meas.depth_ok.any() else 0
+    x[2] = surface_depth + (meas.depth_m[i] if meas.depth_ok.any() else 0.0)
+    if meas.mocap_ok.any():
+        j = int(np.argmax(meas.mocap_ok))
+        x[0:3] = meas.mocap[j, :3]
+        x[3:6] = meas.mocap[j, 3:]
+    elif meas.att_ok.any():
+        x[3:6] = meas.att_rad[int(np.argmax(meas.att_ok))]
+    else:  # level from the first second of specific force
+        m = max(1, int(round(1.0 / meas.dt_s)))
+        f = meas.imu[:m, 3:].mean(axis=0)
+        x[3] = math.atan2(-f[1], -f[2])
+        x[4] = math.atan2(f[0], math.hypot(f[1], f[2]))
+    return x
