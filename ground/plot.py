@@ -25,6 +25,7 @@ import numpy as np
 from ground.recording import RecordingError, decode_message, read_recording, scan_packets
 
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAX_RATE_BINS = 10_000  # bins of the packet-rate trace in the link panel
 PANELS = ("attitude", "depth", "velocity", "jets", "joints", "allocation", "timing", "link")
 
 
@@ -283,9 +284,13 @@ def make_plots(path, out_dir, vehicle=None) -> dict:
         ax.set_ylabel("packets lost (cumulative, from seq gaps)")
         if ex.log_time is not None and len(ex.log_time) > 1:
             ax2 = ax.twinx()
-            edges = np.arange(0.0, ex.log_time[-1] + 1.0, 1.0)
+            # one-second bins, at most MAX_RATE_BINS of them: a log spanning a long gap gets
+            # wider bins, never memory by its time span
+            span = float(np.max(ex.log_time))
+            width = max(1.0, span / MAX_RATE_BINS)
+            edges = np.arange(int(span / width) + 2) * width
             counts, _ = np.histogram(ex.log_time, edges)
-            ax2.step(edges[:-1], counts, where="post", color="0.6", lw=0.6)
+            ax2.step(edges[:-1], counts / width, where="post", color="0.6", lw=0.6)
             ax2.set_ylabel("packets/s (grey)")
 
     titles = {"attitude": "Attitude", "depth": "Depth", "velocity": "Velocity", "jets": "Jets",

@@ -5,8 +5,10 @@ Its framing is scanned by a compiled pass (`_scan_tlog`) that checks every packe
 the dialect's CRC_EXTRA (the same check pymavlink's parser makes), so a damaged file is read as
 far as it is sound and every byte that is not part of a good packet is counted:
 - a packet whose CRC fails is counted in `bad_crc_packets` (and its bytes in `skipped_bytes`);
-- bytes between packets that frame as nothing (garbage, a torn write) are skipped until the next
-  position where a plausible timestamp is followed by a packet with a good CRC;
+- bytes between packets that frame as nothing (garbage, a torn write, a damaged length or start
+  marker) are skipped until the next byte position holding a packet with a good CRC: framing
+  and CRC decide, the tlog timestamp (which no CRC protects) is only a plausibility check, so a
+  packet whose own bytes are intact is read whatever happened before it;
 - a truncated last packet is counted in `truncated_bytes`.
 Payloads of the messages the diagnosis needs are then decoded in bulk with numpy (the
 dialect's own struct layout, MAVLink 2 zero-truncation undone), so a 10-minute 100 Hz log
@@ -16,8 +18,12 @@ Dataflash `.bin` logs are read with pymavlink's DFReader (IMU, BARO instance 1 =
 sensor, RCOU, ATT, ESC); the bytes its parser skips are counted as well.
 
 Streams are aligned on vehicle time (the messages' own `time_usec` / `time_boot_ms`, in
-seconds since boot); within a stream a sample whose time does not increase is dropped and
-counted in `non_monotonic`; gaps longer than five nominal periods are listed.
+seconds since boot; SERVO_OUTPUT_RAW's uint32 microseconds unwrapped and put on the clock of the
+other streams). Within a stream, dropped and counted: a sample with a NaN, inf or physically
+impossible value (`out_of_range`), an impossible time or one out of line with its neighbours, a
+flipped bit (`bad_time`), a time that does not increase (`non_monotonic`). Gaps longer than five
+nominal periods are listed; a stop over `SEGMENT_GAP_S` splits the recording into `segments()`,
+so work on it needs memory by the data, never by its time span.
 ArduSub units: SCALED_IMU / SCALED_IMU2 / RAW_IMU carry accel in mG and gyro in mrad/s
 (ArduPilot GCS_Common send_scaled_imu / send_raw_imu); SCALED_PRESSURE2 press_abs in hPa.
 """
@@ -34,6 +40,14 @@ import numpy as np
 from numba import njit
 
 G_MSS = 9.80665  # ArduPilot GRAVITY_MSS, the mG scale of SCALED_IMU / RAW_IMU
+SEGMENT_GAP_S = 1.0  # a stop longer than this in a core stream splits the recording (segments())
+MAX_TIME_S = 1e10  # vehicle time beyond 317 years (boot or UNIX time) is impossible: a damaged stamp
+# Physically possible sample values; beyond them (or NaN / inf) a sample is dropped and counted.
+ACCEL_MAX_M_S2 = 1000.0  # about 100 g: every IMU saturates well below
+GYRO_MAX_RAD_S = 100.0  # about 5700 deg/s: every IMU saturates well below (ArduPilot: 2000 deg/s)
+PRESS_RANGE_PA = (1.0, 1.2e8)  # vacuum to 12,000 m of water (the deepest ocean)
+ANGLE_MAX_RAD = 4 * np.pi
+POS_MAX_M = 1e6
 
 
 class RecordingError(ValueError):
@@ -102,6 +116,8 @@ class Skipped:
     non_monotonic: dict = field(default_factory=dict)  # stream -> samples dropped
     gaps: tuple = ()  # (stream, t0_s, t1_s) where a stream stops for > 5 periods
     bad_records: int = 0  # dataflash records of a used type lacking a column or with a non-number
+    out_of_range: dict = field(default_factory=dict)  # stream -> samples with a NaN, inf or impossible value
+    bad_time: dict = field(default_factory=dict)  # stream -> samples at an impossible or out-of-line time
 
 
 @dataclass(frozen=True)
@@ -139,10 +155,10 @@ class Recording:
         """The same recording with every stream cut to t0_s <= t < t1_s (vehicle time)."""
         import dataclasses
 
-        def cut(stream):
-            sel = (stream.time_s >= t0_s) & (stream.time_s < t1_s)
+        def cut(stream):  # times are strictly increasing: a slice, not a mask over the stream
+            i0, i1 = np.searchsorted(stream.time_s, [t0_s, t1_s], side="left")
             return dataclasses.replace(stream, **{
-                f.name: _frozen(getattr(stream, f.name)[sel]) for f in dataclasses.fields(stream)
+                f.name: _frozen(getattr(stream, f.name)[i0:max(i0, i1)]) for f in dataclasses.fields(stream)
                 if isinstance(getattr(stream, f.name), np.ndarray)})
 
         return dataclasses.replace(self, **{n: cut(s) for n, s in self.streams.items()})
@@ -161,8 +177,39 @@ class Recording:
             "unknown_packets": s.unknown_packets,
             "non_monotonic": dict(s.non_monotonic),
             "bad_records": s.bad_records,
+            "out_of_range": dict(s.out_of_range),
+            "bad_time": dict(s.bad_time),
             "gaps": [{"stream": g[0], "t0": round(g[1], 3), "t1": round(g[2], 3)} for g in s.gaps],
+            "segments": [[round(a, 3), round(b, 3)] for a, b in self.segment_bounds()],
         }
+
+    def segment_bounds(self, max_gap_s: float = SEGMENT_GAP_S) -> list:
+        """[(t0, t1)] of the stretches between gaps: a gap is a stop longer than max_gap_s in the
+        IMU, pressure or servo stream (any of them). Work on a recording with a long gap goes
+        segment by segment (`segments()`), so its memory follows the data, not the time span."""
+        if not self.streams:
+            return []
+        cuts = []
+        for name in ("imu", "pressure", "servo"):
+            s = getattr(self, name)
+            if s is not None and len(s.time_s) > 1:
+                dt = np.diff(s.time_s)
+                for i in np.nonzero(dt > max_gap_s)[0]:
+                    cuts.append((float(s.time_s[i]), float(s.time_s[i + 1])))
+        cuts.sort()
+        out, t0 = [], self.t_start_s
+        end = self.t_end_s
+        for a, b in cuts:  # a stop in one stream is a stop of the recording's usable part
+            if a > t0:
+                out.append((t0, a))
+            t0 = max(t0, b)
+        out.append((t0, end))
+        return [(a, b) for a, b in out if b >= a]
+
+    def segments(self, max_gap_s: float = SEGMENT_GAP_S) -> list:
+        """The recording cut at its gaps (`segment_bounds`): one Recording per stretch."""
+        bounds = self.segment_bounds(max_gap_s)
+        return [self.between(a, np.nextafter(b, np.inf)) for a, b in bounds]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -262,22 +309,52 @@ def _timestamp(buf, p):
 
 
 @njit(cache=True)
-def _plausible(buf, p, last_ts, ids, extra):
-    """A resync point: timestamp near the last good one (or any, before the first) + a good packet."""
-    if p + 8 >= buf.shape[0]:
+def _ts_plausible(ts, last_ts):
+    """A tlog stamp within [last - 1 h, last + 1 day] of the last trusted one (any, before the first)."""
+    if last_ts == np.uint64(0):
         return False
-    ts = _timestamp(buf, p)
-    if last_ts > np.uint64(0):
-        lo = last_ts - np.uint64(3600_000_000) if last_ts > np.uint64(3600_000_000) else np.uint64(0)
-        if ts < lo or ts > last_ts + np.uint64(86_400_000_000):
-            return False
-    st = _frame(buf, p + 8, ids, extra)[0]
-    return st == 0
+    lo = last_ts - np.uint64(3600_000_000) if last_ts > np.uint64(3600_000_000) else np.uint64(0)
+    return lo <= ts <= last_ts + np.uint64(86_400_000_000)
+
+
+@njit(cache=True)
+def _resync_ok(buf, q, last_ts, ids, extra):
+    """A resync point: at q+8 a packet whose framing and CRC are good. The tlog stamp at q, which
+    no CRC protects, is only a plausibility check for a MAVLink 1 packet (CRC-16 over a short
+    header is found by chance in about one 0xFE byte in 80,000 of garbage): such a packet is
+    taken if its stamp is near the last trusted one or the next packet frames well after it."""
+    n = buf.shape[0]
+    if q + 8 >= n:
+        return False
+    m = buf[q + 8]
+    if m != 0xFD and m != 0xFE:
+        return False
+    st, total, msgid, sysid, compid, poff, plen = _frame(buf, q + 8, ids, extra)
+    if st != 0:
+        return False
+    if m == 0xFD or _ts_plausible(_timestamp(buf, q), last_ts):
+        return True
+    nxt = q + 8 + total
+    if nxt == n:
+        return True
+    if nxt + 8 >= n:
+        return False
+    st2 = _frame(buf, nxt + 8, ids, extra)[0]
+    return st2 == 0 or st2 == 2
 
 
 @njit(cache=True)
 def _scan_tlog(buf, ids, extra):
-    """Walk [ts][packet]...; returns per-packet arrays and the skip counters (see module doc)."""
+    """Walk [ts][packet]...; returns per-packet arrays and the skip counters (see module doc).
+
+    Resynchronisation is on MAVLink framing and CRC: after anything that is not a good packet
+    where one was expected (garbage, a bad CRC, a damaged length or start marker), the next
+    byte position holding a packet with a good CRC is where reading resumes, so a packet whose
+    own bytes are intact is never lost to damage before it. The tlog stamp is a plausibility
+    check only: a stamp out of line with the last trusted one (a flipped bit) is not trusted
+    and the packet gets the last trusted stamp; two consecutive packets agreeing on a new time
+    (a real jump of the logger's clock) make it the trusted one.
+    """
     n = buf.shape[0]
     cap = n // 16 + 16
     off = np.empty(cap, np.int64)
@@ -291,6 +368,7 @@ def _scan_tlog(buf, ids, extra):
     skipped = 0
     truncated = 0
     last_ts = np.uint64(0)
+    cand = np.uint64(0)  # an untrusted stamp; trusted when the next packet agrees with it
     p = 0
     while p < n:
         if p + 8 > n:
@@ -298,32 +376,55 @@ def _scan_tlog(buf, ids, extra):
             skipped += n - p
             break
         st, total, msgid, sysid, compid, poff, plen = _frame(buf, p + 8, ids, extra)
-        if st == 4 and not _plausible_tail(buf, p, last_ts):
-            st = 3
-        if st == 4:
-            truncated += n - p
-            skipped += n - p
-            break
-        if st == 3:
-            q = p + 1
-            while q < n and not _plausible(buf, q, last_ts, ids, extra):
-                q += 1
-            skipped += q - p
-            if q >= n:
-                break
-            p = q
-            continue
+        if st == 2:  # good framing, unknown id: taken if what follows frames (its length is sound)
+            nxt = p + 8 + total
+            if nxt + 8 < n:
+                st2 = _frame(buf, nxt + 8, ids, extra)[0]
+                if st2 != 0 and st2 != 2 and st2 != 4:
+                    st = 3
         if st == 1:
+            # a bad CRC: a good packet starting inside its span wins (its length byte may be
+            # the damage); else, if its length leads to a packet, skip it as one bad packet
             bad_crc += 1
-            skipped += 8 + total
-            p += 8 + total
+            nxt = p + 8 + total
+            q = p + 1
+            while q < nxt and not _resync_ok(buf, q, last_ts, ids, extra):
+                q += 1
+            if q == nxt and (nxt == n or (nxt + 8 < n and _frame(buf, nxt + 8, ids, extra)[0] != 3)):
+                skipped += 8 + total
+                p = nxt
+                continue
+            if q < nxt:
+                skipped += q - p
+                p = q
+                continue
+            st = 3  # its length leads nowhere: resynchronise from there
+        if st == 3 or st == 4:
+            q = p + 1
+            while q < n and not _resync_ok(buf, q, last_ts, ids, extra):
+                q += 1
+            if q >= n:
+                if st == 4 and _plausible_tail(buf, p, last_ts):
+                    truncated += n - p
+                skipped += n - p
+                break
+            skipped += q - p
+            p = q
             continue
         if st == 2:
             unknown += 1
             p += 8 + total
             continue
         ts = _timestamp(buf, p)
-        last_ts = ts
+        if last_ts == np.uint64(0) or _ts_plausible(ts, last_ts):
+            last_ts = ts
+            cand = np.uint64(0)
+        elif cand != np.uint64(0) and _ts_plausible(ts, cand):
+            last_ts = ts  # the logger's clock really jumped: two packets agree
+            cand = np.uint64(0)
+        else:
+            cand = ts
+            ts = last_ts
         off[m] = poff
         plen_a[m] = plen
         mid[m] = msgid
@@ -339,8 +440,7 @@ def _plausible_tail(buf, p, last_ts):
     """A torn packet at the end only if its timestamp is plausible; else it is garbage."""
     if last_ts == np.uint64(0):
         return True
-    ts = _timestamp(buf, p)
-    return last_ts - np.uint64(3600_000_000) <= ts <= last_ts + np.uint64(86_400_000_000)
+    return _ts_plausible(_timestamp(buf, p), last_ts)
 
 
 # Bulk payload decoding with the dialect's own struct layout.
@@ -435,46 +535,53 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
         counts[name] = int(sel.sum())
         if name in WANTED and name != "HEARTBEAT":
             decoded[name] = _decode_bulk(buf, off[sel], plen[sel], d.mavlink_map[name_to_id[name]])
-    nonmono: dict = {}
-    gaps: list = []
-    imu = _imu_from_tlog(decoded, nonmono, gaps)
+    tally = _Tally()
+    imu = _imu_from_tlog(decoded, tally)
+    offset = _log_clock_offset(decoded, ts, use, mid, name_to_id)
     pressure = None
     if "SCALED_PRESSURE2" in decoded:
         a = decoded["SCALED_PRESSURE2"]
-        t, keep = _monotonic(a["time_boot_ms"] / 1e3, "pressure", nonmono, gaps)
-        pressure = PressureStream(_frozen(t), _frozen(a["press_abs"][keep] * 100.0), "SCALED_PRESSURE2")
+        p_pa = np.asarray(a["press_abs"], float) * 100.0
+        t, keep = _monotonic(a["time_boot_ms"] / 1e3, "pressure", tally, _press_valid(p_pa))
+        pressure = PressureStream(_frozen(t), _frozen(p_pa[keep]), "SCALED_PRESSURE2")
     servo = None
     if "SERVO_OUTPUT_RAW" in decoded:
-        servo = _servo_from_tlog(decoded["SERVO_OUTPUT_RAW"], nonmono, gaps)
+        t_log = ts[use & (mid == name_to_id["SERVO_OUTPUT_RAW"])].astype(np.float64) / 1e6
+        servo = _servo_from_tlog(decoded["SERVO_OUTPUT_RAW"], t_log, offset, tally)
     attitude = None
     if "ATTITUDE" in decoded:
         a = decoded["ATTITUDE"]
-        t, keep = _monotonic(a["time_boot_ms"] / 1e3, "attitude", nonmono, gaps)
-        e = np.column_stack([a["roll"], a["pitch"], a["yaw"]])[keep]
-        r = np.column_stack([a["rollspeed"], a["pitchspeed"], a["yawspeed"]])[keep]
-        attitude = AttitudeStream(_frozen(t), _frozen(e), _frozen(r))
+        e = np.column_stack([a["roll"], a["pitch"], a["yaw"]]).astype(float)
+        r = np.column_stack([a["rollspeed"], a["pitchspeed"], a["yawspeed"]]).astype(float)
+        t, keep = _monotonic(a["time_boot_ms"] / 1e3, "attitude", tally, _attitude_valid(e, r))
+        attitude = AttitudeStream(_frozen(t), _frozen(e[keep]), _frozen(r[keep]))
     esc = None
     if "ESC_STATUS" in decoded:
         a = decoded["ESC_STATUS"]
         a = a[a["index"] == 0]  # units 1-4
-        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "esc", nonmono, gaps)
-        esc = EscStream(_frozen(t), _frozen(np.asarray(a["rpm"], float)[keep]))
+        rpm = np.asarray(a["rpm"], float)
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "esc", tally, np.isfinite(rpm).all(axis=1))
+        esc = EscStream(_frozen(t), _frozen(rpm[keep]))
     if esc is None and "ESC_TELEMETRY_1_TO_4" in decoded:
         # ESC_TELEMETRY carries no time of its own (it is how ArduSub and our codec send rpm):
         # place it on vehicle time through the logger clock's offset from a stream that has one
         sel = use & (mid == name_to_id["ESC_TELEMETRY_1_TO_4"])
         t_log = ts[sel].astype(np.float64) / 1e6
-        offset = _log_clock_offset(decoded, ts, use, mid, name_to_id)
         if offset is not None:
-            t, keep = _monotonic(t_log - offset, "esc", nonmono, gaps)
+            t, keep = _monotonic(t_log - offset, "esc", tally)
             esc = EscStream(_frozen(t), _frozen(np.asarray(decoded["ESC_TELEMETRY_1_TO_4"]["rpm"], float)[keep]))
     mocap = None
     if "ATT_POS_MOCAP" in decoded:
         a = decoded["ATT_POS_MOCAP"]
-        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "mocap", nonmono, gaps)
-        mocap = MocapStream(_frozen(t), _frozen(np.asarray(a["q"], float)[keep]),
-                            _frozen(np.column_stack([a["x"], a["y"], a["z"]])[keep]))
-    skipped_info = Skipped(int(bad_crc), int(skipped), int(truncated), int(unknown), nonmono, tuple(gaps))
+        q = np.asarray(a["q"], float)
+        pos = np.column_stack([a["x"], a["y"], a["z"]]).astype(float)
+        with np.errstate(invalid="ignore", over="ignore"):
+            qn = np.sqrt((q * q).sum(axis=1))
+            valid = _finite_within(2.0, q) & (np.abs(qn - 1.0) < 0.1) & _finite_within(POS_MAX_M, pos)
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "mocap", tally, valid)
+        mocap = MocapStream(_frozen(t), _frozen(q[keep]), _frozen(pos[keep]))
+    skipped_info = Skipped(int(bad_crc), int(skipped), int(truncated), int(unknown), tally.nonmono,
+                           tuple(tally.gaps), 0, tally.out_of_range, tally.bad_time)
     return Recording(str(path), "tlog", counts, skipped_info, imu, pressure, servo, attitude, esc,
                      mocap, vehicle)
 
@@ -494,42 +601,144 @@ def _vehicle_source(buf, off, plen, mid, src, d) -> tuple:
 
 
 def _unwrap_us(t_us) -> np.ndarray:
-    """uint32 microsecond clocks (SERVO_OUTPUT_RAW) wrap after 71.6 min: unwrap them."""
-    t = np.asarray(t_us, dtype=np.float64)
-    if t.size and t.max() < 2 ** 32:
-        jumps = np.diff(t) < -2 ** 31
+    """Microsecond clocks sent as uint32 (SERVO_OUTPUT_RAW) wrap every 71.6 min: unwrap them.
+    A wrap is a step back of more than 2^31 us; a uint64 clock is only converted."""
+    raw = np.asarray(t_us)
+    t = raw.astype(np.float64)
+    if raw.dtype == np.uint32 and t.size > 1:
+        jumps = np.diff(t) < -2.0 ** 31
         t = t + np.concatenate([[0.0], np.cumsum(jumps) * 2.0 ** 32])
     return t
 
 
-def _monotonic(t, stream: str, nonmono: dict, gaps: list):
-    """Keep samples whose time increases (count the others); list gaps > 5 median periods."""
+WRAP_S = 2.0 ** 32 / 1e6  # a uint32 microsecond clock's period: 4294.967296 s (71.6 min)
+
+
+def _align_wrapped(t_s, t_log_s, offset_s):
+    """A uint32-us stream whose whole wraps before the log began are unknown (a vehicle up for
+    more than 71.6 min): add the whole periods that put it on the vehicle clock of the other
+    streams, through the logger clock (`offset_s`, logger - vehicle, from a stream that does
+    not wrap). Without a reference, or if the logger clock disagrees by more than a quarter
+    period, it is left as it is."""
+    if offset_s is None or not len(t_s):
+        return t_s
+    ok = np.isfinite(t_s)
+    if not ok.any():
+        return t_s
+    behind = float(np.median((t_log_s - t_s)[ok])) - offset_s  # >= 0: whole wraps missed
+    k = round(behind / WRAP_S)
+    if k <= 0 or abs(behind - k * WRAP_S) > WRAP_S / 4:
+        return t_s
+    return t_s + k * WRAP_S
+
+
+class _Tally:
+    """The per-stream counts of samples not used (Skipped's dicts) and the gaps."""
+
+    def __init__(self):
+        self.nonmono: dict = {}
+        self.out_of_range: dict = {}
+        self.bad_time: dict = {}
+        self.gaps: list = []
+
+    @staticmethod
+    def add(d: dict, stream: str, n) -> None:
+        if int(n):
+            d[stream] = d.get(stream, 0) + int(n)
+
+
+def _out_of_line(t: np.ndarray) -> np.ndarray:
+    """Samples whose time is out of line with the stream: a run of at most 4 samples that jumps
+    ahead of the samples after it while those follow on from the samples before it (a flipped
+    bit in a stamp). A real gap never goes back, so it is kept; a sample going back is left to
+    the monotonic check."""
+    n = len(t)
+    out = np.zeros(n, dtype=bool)
+    if n < 2:
+        return out
+    d = np.diff(t)
+    pos = d[d > 0]
+    period = float(np.median(pos)) if len(pos) else 0.0
+    brk = np.nonzero(np.abs(d) > max(20.0 * period, 1e-3))[0]
+    if not len(brk):
+        return out
+    starts = np.concatenate([[0], brk + 1])
+    ends = np.concatenate([brk + 1, [n]])
+    first, last, lens = t[starts], t[ends - 1], ends - starts
+    nxt_first = np.append(first[1:], np.inf)
+    prev_last = np.insert(last[:-1], 0, -np.inf)
+    bad = (lens <= 4) & (last > nxt_first) & (prev_last < nxt_first)
+    return np.repeat(bad, lens)
+
+
+def _monotonic(t, stream: str, tally: "_Tally", valid=None):
+    """The samples to keep and their times. Dropped and counted: an impossible time (NaN, < 0,
+    > MAX_TIME_S) or one out of line with its neighbours (`bad_time`); a value that is NaN, inf
+    or physically impossible, `valid` False (`out_of_range`); a time that does not increase
+    (`non_monotonic`). Gaps > 5 median periods are listed."""
     t = np.asarray(t, dtype=float)
+    ok = np.isfinite(t) & (t >= 0) & (t <= MAX_TIME_S)
+    bad_time = int(len(t) - ok.sum())
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool)
+        tally.add(tally.out_of_range, stream, (ok & ~valid).sum())
+        ok &= valid
+    idx = np.nonzero(ok)[0]
+    line = _out_of_line(t[idx])
+    bad_time += int(line.sum())
+    tally.add(tally.bad_time, stream, bad_time)
+    idx = idx[~line]
+    tt = t[idx]
+    mono = np.zeros(len(tt), dtype=bool)
+    if len(tt):
+        running = np.maximum.accumulate(tt)
+        mono[0] = True
+        mono[1:] = tt[1:] > running[:-1]
+    tally.add(tally.nonmono, stream, len(tt) - mono.sum())
     keep = np.zeros(len(t), dtype=bool)
-    if len(t):
-        running = np.maximum.accumulate(t)
-        keep[0] = True
-        keep[1:] = t[1:] > running[:-1]
-    dropped = int(len(t) - keep.sum())
-    if dropped:
-        nonmono[stream] = nonmono.get(stream, 0) + dropped
+    keep[idx[mono]] = True
     tk = t[keep]
     if len(tk) > 2:
         dt = np.diff(tk)
         period = float(np.median(dt))
         for i in np.nonzero(dt > 5 * period + 1e-9)[0]:
-            gaps.append((stream, float(tk[i]), float(tk[i + 1])))
+            tally.gaps.append((stream, float(tk[i]), float(tk[i + 1])))
     return tk, keep
 
 
-def _imu_from_tlog(decoded: dict, nonmono: dict, gaps: list) -> ImuStream | None:
+def _finite_within(limit, *cols) -> np.ndarray:
+    """True where every column is finite and within +-limit."""
+    ok = np.ones(len(cols[0]) if len(cols) else 0, dtype=bool)
+    for c in cols:
+        c = np.asarray(c, dtype=float)
+        with np.errstate(invalid="ignore"):
+            ok &= np.isfinite(c).all(axis=-1) if c.ndim > 1 else np.isfinite(c)
+            ok &= (np.abs(c) <= limit).all(axis=-1) if c.ndim > 1 else (np.abs(c) <= limit)
+    return ok
+
+
+def _imu_valid(acc, gyr) -> np.ndarray:
+    return _finite_within(ACCEL_MAX_M_S2, acc) & _finite_within(GYRO_MAX_RAD_S, gyr)
+
+
+def _press_valid(p) -> np.ndarray:
+    p = np.asarray(p, dtype=float)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(p) & (p >= PRESS_RANGE_PA[0]) & (p <= PRESS_RANGE_PA[1])
+
+
+def _attitude_valid(e, r) -> np.ndarray:
+    return _finite_within(ANGLE_MAX_RAD, e) & _finite_within(GYRO_MAX_RAD_S, r)
+
+
+def _imu_from_tlog(decoded: dict, tally: _Tally) -> ImuStream | None:
     if "HIGHRES_IMU" in decoded:
         a = decoded["HIGHRES_IMU"]
         a = a[a["id"] == 0] if "id" in a.dtype.names and (a["id"] == 0).any() else a
-        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "imu", nonmono, gaps)
-        acc = np.column_stack([a["xacc"], a["yacc"], a["zacc"]])[keep]
-        gyr = np.column_stack([a["xgyro"], a["ygyro"], a["zgyro"]])[keep]
-        return ImuStream(_frozen(t), _frozen(acc), _frozen(gyr), "HIGHRES_IMU")
+        acc = np.column_stack([a["xacc"], a["yacc"], a["zacc"]]).astype(float)
+        gyr = np.column_stack([a["xgyro"], a["ygyro"], a["zgyro"]]).astype(float)
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "imu", tally, _imu_valid(acc, gyr))
+        return ImuStream(_frozen(t), _frozen(acc[keep]), _frozen(gyr[keep]), "HIGHRES_IMU")
     # ArduSub sends RAW_IMU and SCALED_IMU for the primary IMU and SCALED_IMU2 for the second;
     # an IMU that is not fitted is sent as all zeros and is passed over.
     for name, tkey in (("RAW_IMU", "time_usec"), ("SCALED_IMU", "time_boot_ms"), ("SCALED_IMU2", "time_boot_ms")):
@@ -537,19 +746,23 @@ def _imu_from_tlog(decoded: dict, nonmono: dict, gaps: list) -> ImuStream | None
             a = decoded[name]
             scale_t = 1e-3 if tkey == "time_boot_ms" else 1e-6
             t_raw = a[tkey] * scale_t if tkey == "time_boot_ms" else _unwrap_us(a[tkey]) * scale_t
-            t, keep = _monotonic(t_raw, "imu", nonmono, gaps)
             # mG -> m/s^2, mrad/s -> rad/s (ArduPilot GCS_Common)
-            acc = np.column_stack([a["xacc"], a["yacc"], a["zacc"]]).astype(float)[keep] * G_MSS / 1000.0
-            gyr = np.column_stack([a["xgyro"], a["ygyro"], a["zgyro"]]).astype(float)[keep] / 1000.0
-            return ImuStream(_frozen(t), _frozen(acc), _frozen(gyr), name)
+            acc = np.column_stack([a["xacc"], a["yacc"], a["zacc"]]).astype(float) * G_MSS / 1000.0
+            gyr = np.column_stack([a["xgyro"], a["ygyro"], a["zgyro"]]).astype(float) / 1000.0
+            t, keep = _monotonic(t_raw, "imu", tally, _imu_valid(acc, gyr))
+            return ImuStream(_frozen(t), _frozen(acc[keep]), _frozen(gyr[keep]), name)
     return None
 
 
-def _servo_from_tlog(a, nonmono: dict, gaps: list) -> ServoStream:
+def _servo_from_tlog(a, t_log_s, offset_s, tally: _Tally) -> ServoStream:
     # port 0 carries channels 1-16 (9-16 in the MAVLink 2 extension fields); other ports are
     # further banks of 8 that ArduSub does not use.
-    a = a[a["port"] == 0] if (a["port"] == 0).any() else a
-    t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "servo", nonmono, gaps)
+    if (a["port"] == 0).any():
+        t_log_s = t_log_s[a["port"] == 0]
+        a = a[a["port"] == 0]
+    # time_usec is uint32: unwrapped within the log, then put on the other streams' clock
+    t = _align_wrapped(_unwrap_us(a["time_usec"]) / 1e6, t_log_s, offset_s)
+    t, keep = _monotonic(t, "servo", tally)
     pwm = np.column_stack([a[f"servo{c}_raw"] for c in range(1, 17)]).astype(float)[keep]
     return ServoStream(_frozen(t), _frozen(pwm))
 
@@ -611,8 +824,7 @@ def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
         used_bytes += getattr(fmt, "len", 0) or 0
         if name in rows:
             rows[name].append(m.to_dict())
-    nonmono: dict = {}
-    gaps: list = []
+    tally = _Tally()
     bad = [0]
     imu = pressure = servo = attitude = esc = None
     # A damaged FMT record can rename a type's columns or change their types: a record without
@@ -620,22 +832,23 @@ def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
     imu_rows = _df_columns(rows["IMU"], ("TimeUS", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ"), bad, "I")
     imu_rows = imu_rows[imu_rows[:, -1] == 0] if len(imu_rows) else imu_rows
     if len(imu_rows):
-        t, keep = _monotonic(imu_rows[:, 0] / 1e6, "imu", nonmono, gaps)
+        t, keep = _monotonic(imu_rows[:, 0] / 1e6, "imu", tally, _imu_valid(imu_rows[:, 1:4], imu_rows[:, 4:7]))
         imu = ImuStream(_frozen(t), _frozen(imu_rows[keep, 1:4]), _frozen(imu_rows[keep, 4:7]), "IMU")
     baro_rows = _df_columns(rows["BARO"], ("TimeUS", "Press"), bad, "I")
     baro = baro_rows[baro_rows[:, -1] == 1] if len(baro_rows) else baro_rows
     if not len(baro) and len(baro_rows):
         baro = baro_rows[baro_rows[:, -1] == 0]
     if len(baro):  # ArduSub: instance 1 is the external depth sensor
-        t, keep = _monotonic(baro[:, 0] / 1e6, "pressure", nonmono, gaps)
+        t, keep = _monotonic(baro[:, 0] / 1e6, "pressure", tally, _press_valid(baro[:, 1]))
         pressure = PressureStream(_frozen(t), _frozen(baro[keep, 1]), "BARO")
     rcou = _df_columns(rows["RCOU"], ("TimeUS",), bad, *(f"C{c}" for c in range(1, 17)))
     if len(rcou):
-        t, keep = _monotonic(rcou[:, 0] / 1e6, "servo", nonmono, gaps)
+        t, keep = _monotonic(rcou[:, 0] / 1e6, "servo", tally, np.isfinite(rcou[:, 1:17]).all(axis=1))
         servo = ServoStream(_frozen(t), _frozen(rcou[keep, 1:17]))
     att = _df_columns(rows["ATT"], ("TimeUS", "Roll", "Pitch", "Yaw"), bad)
     if len(att):
-        t, keep = _monotonic(att[:, 0] / 1e6, "attitude", nonmono, gaps)
+        t, keep = _monotonic(att[:, 0] / 1e6, "attitude", tally,
+                             _finite_within(np.degrees(ANGLE_MAX_RAD), att[:, 1:4]))
         e = np.radians(att[keep, 1:4])
         e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
         rates = np.zeros_like(e)
@@ -648,12 +861,13 @@ def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
         times = np.unique(esc_rows[:, 0])  # sorted; NaN times (if any) each their own row, then dropped
         rpm = np.zeros((len(times), 4))
         rpm[np.searchsorted(times, esc_rows[:, 0]), esc_rows[:, -1].astype(int)] = esc_rows[:, 1]
-        t, keep = _monotonic(times / 1e6, "esc", nonmono, gaps)
+        t, keep = _monotonic(times / 1e6, "esc", tally, np.isfinite(rpm).all(axis=1))
         esc = EscStream(_frozen(t), _frozen(rpm[keep]))
     if not counts:
         raise RecordingError(f"{path}: no dataflash records found")
     skipped_bytes = max(int(len(data) - used_bytes), 0)
-    skipped_info = Skipped(0, skipped_bytes, 0, 0, nonmono, tuple(gaps), bad[0])
+    skipped_info = Skipped(0, skipped_bytes, 0, 0, tally.nonmono, tuple(tally.gaps), bad[0],
+                           tally.out_of_range, tally.bad_time)
     return Recording(str(path), "dataflash", counts, skipped_info, imu, pressure, servo, attitude, esc)
 
 

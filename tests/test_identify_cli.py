@@ -157,3 +157,31 @@ def test_free_decay_reads_a_tlog_recording(tmp_path, vehicle):
     # the recording's SCALED_PRESSURE2 (hPa, float32) carries the same trace as the CSV
     assert a["omega_n"] == pytest.approx(b["omega_n"], rel=1e-4)
     assert a["chin"]["added_mass"] == pytest.approx(4.1, rel=0.01)
+
+
+def test_free_decay_on_a_recording_with_a_gap_is_refused_with_the_gap(tmp_path, capsys):
+    """Issue 15 items 5 and 9: a pressure stream that stops for 2000 s was resampled across the
+    gap (filled by interpolation, memory by the time span, 419 TiB on a bit-flipped .bin):
+    the gap is named and the user picks the stretch with --t0/--t1, which then fits."""
+    from ground.identify import free_decay as fd
+    from ground.identify.cli import _write_tlog_depth
+
+    t, y = fd.synthesize_linear_decay(6.0, 0.05, 0.05, 20.0, 50.0)
+    t = np.where(t >= 10.0, t + 2000.0, t)
+    path = tmp_path / "gap.tlog"
+    _write_tlog_depth(path, t, 101325.0 + 1000.0 * 9.81 * (0.5 + y))
+    assert main(["identify", "free-decay", str(path), "--spring", "400"]) == 2
+    err = capsys.readouterr().err
+    assert "a gap in the recording" in err and "after t = 9.98 s" in err and "Traceback" not in err
+    assert main(["identify", "free-decay", str(path), "--spring", "400", "--t1", "9.99",
+                 f"--json={tmp_path / 'a.json'}"]) == 0
+
+
+def test_resampling_a_trace_never_allocates_by_its_time_span():
+    """A 1e9 s jump in a slightly irregular trace asked numpy for 10^11 samples (MemoryError)."""
+    from ground.identify import free_decay as fd
+
+    t = np.arange(200) * 0.01 + np.r_[np.zeros(100), np.full(100, 1e9)]
+    t[5] += 1e-4  # irregular: resampled
+    with pytest.raises(ValueError, match="a gap in the recording"):
+        fd.uniform(t, np.sin(t))

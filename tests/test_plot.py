@@ -146,3 +146,31 @@ def test_empty_panels_say_so_and_bad_input_is_refused(tmp_path, capsys):
     assert "junk.tlog: no MAVLink packet with a good CRC found" in err and "Traceback" not in err
     assert main(["plot", str(tmp_path / "missing.tlog"), "--out", str(tmp_path / "m")]) == 2
     assert "cannot read recording" in capsys.readouterr().err
+
+
+def test_a_recording_with_a_long_gap_plots_with_memory_by_its_data(tmp_path):
+    """Issue 15 item 5: the link panel's packet-rate trace had one bin per second of the log's
+    span, so a 3 s log whose clocks jump by 4e6 s (46 days) allocated and drew 4 million bins."""
+    import tracemalloc
+
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    path = tmp_path / "gap.tlog"
+    with TlogWriter(path) as w:
+        for i in range(300):
+            t = i * 0.01 + (4e6 if i >= 150 else 0.0)
+            stamp = 1_700_000_000_000_000 + int(round(t * 1e6))
+            if i % 50 == 0:
+                w.write(mavlink.MAVLink_heartbeat_message(12, 3, 0, 0, 4, 3), stamp)
+            w.write(mav.MAVLink_highres_imu_message(int(round(t * 1e6)), 0, 0, -9.8, 0, 0, 0, 0, 0, 0,
+                                                    0, 0, 0, 0, 0b111111, 0), stamp)
+            w.write(mav.MAVLink_scaled_pressure2_message(int(round(t * 1e3)), 1013.25, 0, 2000, 0), stamp)
+    make_plots(path, tmp_path / "warm")  # matplotlib's own first-use allocations, not counted
+    tracemalloc.start()
+    try:
+        s = make_plots(path, tmp_path / "out")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 20e6, peak
+    assert s["segments"] == [[0.0, 1.49], [4e6 + 1.5, 4e6 + 2.99]]

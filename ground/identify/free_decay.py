@@ -138,7 +138,12 @@ def uniform(t, y):
         raise ValueError("time must be strictly increasing")
     step = float(np.median(dt))
     if np.max(np.abs(dt - step)) > 0.01 * step:
-        tu = t[0] + step * np.arange(int(math.floor((t[-1] - t[0]) / step)) + 1)
+        n = int(math.floor((t[-1] - t[0]) / step)) + 1
+        if n > 2 * t.size + 16:  # resampling across a gap would fill it (and allocate by its span)
+            i = int(np.argmax(dt))
+            raise ValueError(f"the trace stops for {dt[i]:.4g} s after t = {t[i]:.6g} s (a gap in the recording): "
+                             "a free decay is fitted on one stretch; choose it with --t0/--t1")
+        tu = t[0] + step * np.arange(n)
         return tu, np.interp(tu, t, y), step
     return t, y, step
 
