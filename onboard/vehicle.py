@@ -33,6 +33,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 DEFAULT_VEHICLE = Path(__file__).parent / "data" / "asr4.toml"
+MAX_NAME = 64  # characters of a vehicle name
 
 EFFECT_IDS = (
     "thrust_inflow",
@@ -53,8 +54,12 @@ class VehicleFileError(ValueError):
 # A field's metadata says what the key must hold: `n` (vector length, None for a scalar),
 # `check` (one of the CHECKS below), `unit` (for messages and docs).
 
-def _key(unit: str, check: str = "finite", n: int | None = None, default: Any = dataclasses.MISSING):
-    return field(default=default, metadata={"unit": unit, "check": check, "n": n})
+def _key(unit: str, check: str = "finite", n: int | None = None, default: Any = dataclasses.MISSING,
+         lo: float | None = None, hi: float | None = None, hint: str = ""):
+    """`lo`..`hi`: the plausible range of the key (of each element of a vector), in `unit`;
+    `hint` is said when a value is out of it (the usual slip: grams for kg, rpm for rev/s)."""
+    return field(default=default, metadata={"unit": unit, "check": check, "n": n,
+                                            "range": (lo, hi, hint) if lo is not None else None})
 
 
 CHECKS = {
@@ -69,50 +74,50 @@ CHECKS = {
 
 @dataclass(frozen=True)
 class Environment:
-    rho: float = _key("kg/m^3", "positive")
-    g: float = _key("m/s^2", "positive")
-    p_atm: float = _key("Pa", "positive")
-    surface_depth: float = _key("m")
-    floor_depth: float = _key("m")
-    current: tuple = _key("m/s NED", "finite", 3)
+    rho: float = _key("kg/m^3", "positive", lo=500.0, hi=2000.0, hint="g/cm^3?")
+    g: float = _key("m/s^2", "positive", lo=1.0, hi=30.0)
+    p_atm: float = _key("Pa", "positive", lo=1e4, hi=2e5, hint="hPa or kPa?")
+    surface_depth: float = _key("m", lo=-100.0, hi=100.0)
+    floor_depth: float = _key("m", lo=-100.0, hi=12000.0)
+    current: tuple = _key("m/s NED", "finite", 3, lo=-10.0, hi=10.0)
 
 
 @dataclass(frozen=True)
 class Body:
-    mass: float = _key("kg", "positive")
-    volume: float = _key("m^3", "positive")
-    radius: float = _key("m", "positive")
-    inertia: tuple = _key("kg m^2 (Ixx, Iyy, Izz about the CG)", "positive", 3)
-    cg: tuple = _key("m body FRD", "finite", 3)
-    cb: tuple = _key("m body FRD", "finite", 3)
+    mass: float = _key("kg", "positive", lo=0.1, hi=1000.0, hint="grams?")
+    volume: float = _key("m^3", "positive", lo=1e-5, hi=2.0, hint="litres?")
+    radius: float = _key("m", "positive", lo=0.01, hi=5.0, hint="cm or mm?")
+    inertia: tuple = _key("kg m^2 (Ixx, Iyy, Izz about the CG)", "positive", 3, lo=1e-6, hi=1e4, hint="g cm^2?")
+    cg: tuple = _key("m body FRD", "finite", 3, lo=-5.0, hi=5.0, hint="cm or mm?")
+    cb: tuple = _key("m body FRD", "finite", 3, lo=-5.0, hi=5.0, hint="cm or mm?")
 
 
 @dataclass(frozen=True)
 class Hydro:
-    added_mass: tuple = _key("kg, kg m^2 [surge..yaw]", "nonneg", 6)
-    linear_damping: tuple = _key("N s/m, N m s/rad [surge..yaw]", "nonneg", 6)
-    quadratic_damping: tuple = _key("N s^2/m^2, N m s^2/rad^2 [surge..yaw]", "nonneg", 6)
+    added_mass: tuple = _key("kg, kg m^2 [surge..yaw]", "nonneg", 6, lo=0.0, hi=1e4)
+    linear_damping: tuple = _key("N s/m, N m s/rad [surge..yaw]", "nonneg", 6, lo=0.0, hi=1e5)
+    quadratic_damping: tuple = _key("N s^2/m^2, N m s^2/rad^2 [surge..yaw]", "nonneg", 6, lo=0.0, hi=1e5)
 
 
 @dataclass(frozen=True)
 class Thruster:
-    diameter: float = _key("m", "positive")
-    kt: tuple = _key("K(J) coefficients [kt0, kt1, kt2]", "finite", 3)
-    j_range: tuple = _key("advance ratio [min, max]", "finite", 2)
-    n_max: float = _key("rev/s", "positive")
-    motor_time_constant: float = _key("s", "positive")
+    diameter: float = _key("m", "positive", lo=1e-3, hi=2.0, hint="mm?")
+    kt: tuple = _key("K(J) coefficients [kt0, kt1, kt2]", "finite", 3, lo=-10.0, hi=10.0)
+    j_range: tuple = _key("advance ratio [min, max]", "finite", 2, lo=-10.0, hi=10.0)
+    n_max: float = _key("rev/s", "positive", lo=0.1, hi=2000.0, hint="rpm? expected rev/s")
+    motor_time_constant: float = _key("s", "positive", lo=1e-4, hi=10.0, hint="ms?")
 
 
 @dataclass(frozen=True)
 class Servo:
     angle_limit: float = _key("rad", "angle")
-    rate_limit: float = _key("rad/s", "positive")
-    time_constant: float = _key("s", "positive")
+    rate_limit: float = _key("rad/s", "positive", lo=0.01, hi=100.0, hint="deg/s?")
+    time_constant: float = _key("s", "positive", lo=1e-4, hi=10.0, hint="ms?")
 
 
 @dataclass(frozen=True)
 class Unit:
-    position: tuple = _key("m body FRD", "finite", 3)
+    position: tuple = _key("m body FRD", "finite", 3, lo=-5.0, hi=5.0, hint="cm or mm?")
     neutral: tuple = _key("unit vector body FRD", "finite", 3)
 
 
@@ -127,27 +132,27 @@ class Pwm:
 
 @dataclass(frozen=True)
 class Sensors:
-    imu_rate: float = _key("Hz", "positive")
-    gyro_noise: float = _key("rad/s", "nonneg")
-    accel_noise: float = _key("m/s^2", "nonneg")
-    pressure_rate: float = _key("Hz", "positive")
-    pressure_noise: float = _key("Pa", "nonneg")
-    attitude_rate: float = _key("Hz", "positive")
-    attitude_noise: float = _key("rad", "nonneg")
-    gyro_bias: tuple = _key("rad/s", "finite", 3)
-    accel_bias: tuple = _key("m/s^2", "finite", 3)
-    delay: float = _key("s", "nonneg")
+    imu_rate: float = _key("Hz", "positive", lo=1.0, hi=4000.0)
+    gyro_noise: float = _key("rad/s", "nonneg", lo=0.0, hi=1.0, hint="deg/s?")
+    accel_noise: float = _key("m/s^2", "nonneg", lo=0.0, hi=10.0)
+    pressure_rate: float = _key("Hz", "positive", lo=0.1, hi=1000.0)
+    pressure_noise: float = _key("Pa", "nonneg", lo=0.0, hi=1e4)
+    attitude_rate: float = _key("Hz", "positive", lo=0.1, hi=1000.0)
+    attitude_noise: float = _key("rad", "nonneg", lo=0.0, hi=1.0, hint="degrees?")
+    gyro_bias: tuple = _key("rad/s", "finite", 3, lo=-1.0, hi=1.0, hint="deg/s?")
+    accel_bias: tuple = _key("m/s^2", "finite", 3, lo=-10.0, hi=10.0)
+    delay: float = _key("s", "nonneg", lo=0.0, hi=2.0, hint="ms?")
 
 
 @dataclass(frozen=True)
 class Envelope:
     """[envelope] (optional, every key defaulted): what a ground setpoint may ask (onboard.envelope)."""
 
-    max_depth_m: float = _key("m below the surface", "positive", default=2.0)
-    min_depth_m: float = _key("m below the surface", "finite", default=0.0)
-    max_speed_m_s: float = _key("m/s, horizontal", "positive", default=1.0)
-    max_heave_speed_m_s: float = _key("m/s", "positive", default=0.5)
-    max_yaw_rate_rad_s: float = _key("rad/s", "positive", default=1.0)
+    max_depth_m: float = _key("m below the surface", "positive", default=2.0, lo=0.0, hi=12000.0)
+    min_depth_m: float = _key("m below the surface", "finite", default=0.0, lo=-100.0, hi=12000.0)
+    max_speed_m_s: float = _key("m/s, horizontal", "positive", default=1.0, lo=0.0, hi=20.0)
+    max_heave_speed_m_s: float = _key("m/s", "positive", default=0.5, lo=0.0, hi=20.0)
+    max_yaw_rate_rad_s: float = _key("rad/s", "positive", default=1.0, lo=0.0, hi=20.0, hint="deg/s?")
 
 
 @dataclass(frozen=True)
@@ -158,18 +163,18 @@ class Effect:
 @dataclass(frozen=True)
 class AzimuthTransient:
     enabled: bool = _key("", "bool")
-    gain_per_newton: float = _key("1/N", "nonneg")
-    f1x: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7)
-    f1y: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7)
-    m1z: tuple = _key("seed 004 eq. 6 [K, a, b, c, d]", "finite", 5)
-    f2x: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7)
-    f2z: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7)
+    gain_per_newton: float = _key("1/N", "nonneg", lo=0.0, hi=1.0)
+    f1x: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7, lo=-1e7, hi=1e7)
+    f1y: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7, lo=-1e7, hi=1e7)
+    m1z: tuple = _key("seed 004 eq. 6 [K, a, b, c, d]", "finite", 5, lo=-1e7, hi=1e7)
+    f2x: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7, lo=-1e7, hi=1e7)
+    f2z: tuple = _key("seed 004 eq. 5 [K, a, b, c, d, e, g]", "finite", 7, lo=-1e7, hi=1e7)
 
 
 @dataclass(frozen=True)
 class WallProximity:
     enabled: bool = _key("", "bool")
-    k_wall: float = _key("dimensionless", "nonneg")
+    k_wall: float = _key("dimensionless", "nonneg", lo=0.0, hi=100.0)
 
 
 @dataclass(frozen=True)
@@ -250,7 +255,7 @@ def load_vehicle(path: str | Path | None = None) -> Vehicle:
     """Load and validate a vehicle TOML (default: the reference vehicle asr4)."""
     path = Path(path) if path is not None else DEFAULT_VEHICLE
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not content
     except (OSError, UnicodeDecodeError) as exc:  # not UTF-8 text: a clear error, not a traceback
         raise VehicleFileError(f"{path}: cannot read vehicle file: {getattr(exc, 'strerror', None) or exc}") from exc
     return parse_vehicle(text, source=str(path))
@@ -259,7 +264,7 @@ def load_vehicle(path: str | Path | None = None) -> Vehicle:
 def parse_vehicle(text: str, source: str = "<string>") -> Vehicle:
     """Parse vehicle TOML text; every error names `source`, the key and what was expected."""
     try:
-        doc = tomllib.loads(text)
+        doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise VehicleFileError(f"{source}: not valid TOML: {exc}") from exc
     return vehicle_from_dict(doc, source)
@@ -272,8 +277,9 @@ def vehicle_from_dict(doc: dict, source: str = "<dict>") -> Vehicle:
         if key not in top:
             err.unknown(key, sorted(top))
     name = doc.get("name")
-    if not isinstance(name, str) or not name:
-        err.add("name", "a non-empty string", name)
+    if not isinstance(name, str) or not name or not name.isprintable() or len(name) > MAX_NAME:
+        # printed on terminals and in reports: a control character (an escape sequence) is refused
+        err.add("name", f"a non-empty string of at most {MAX_NAME} printable characters", name)
     sections = {}
     for sec, cls in SECTIONS.items():
         sections[sec] = _build(cls, doc.get(sec, {} if sec in OPTIONAL_SECTIONS else None), sec, err)
@@ -356,10 +362,63 @@ def _coerce(value, f):
 def _number_ok(v, check) -> bool:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         return False
+    if isinstance(v, int) and not -2 ** 1023 < v < 2 ** 1023:  # a 400-digit integer: no float holds it
+        return False
     return math.isfinite(v) and CHECKS[check][0](v)
 
 
+def _check_ranges(v: Vehicle, err: "_Errors") -> None:
+    """Every key within its plausible range (field metadata `range`), the units in the message."""
+    def walk(obj, where):
+        for f in dataclasses.fields(obj):
+            rng = f.metadata.get("range")
+            value = getattr(obj, f.name)
+            if rng is None or value is None:
+                continue
+            lo, hi, hint = rng
+            values = value if isinstance(value, tuple) else (value,)
+            bad = [x for x in values if not lo <= x <= hi]
+            if bad:
+                full = f.metadata["unit"]
+                compound = any(c in full for c in "[(,")  # e.g. "kg, kg m^2 [surge..yaw]"
+                unit = "" if compound or full == "dimensionless" else " " + full.split(" ")[0]
+                span = f"{lo:g}-{hi:g}" if lo >= 0 else f"{lo:g} to {hi:g}"
+                err.lines.append(f"{where}{f.name} {bad[0]:.6g}{unit}: expected {span}{unit}"
+                                 f"{' for each element' if isinstance(value, tuple) else ''}"
+                                 f"{f' ({full})' if compound else ''}{'; ' + hint if hint else ''}")
+
+    for sec in SECTIONS:
+        walk(getattr(v, sec), f"{sec}.")
+    for i, u in enumerate(v.units):
+        walk(u, f"unit[{i}].")
+    for eid in EFFECT_IDS:
+        walk(getattr(v.effects, eid), f"effects.{eid}.")
+
+
+def _check_full_rank(v: Vehicle, err: "_Errors") -> None:
+    """The units together must be able to push and turn the body about every axis: the wrench
+    map B = [f_i; r_i x f_i] over every unit's force (spec 3) has rank 6, which needs at least
+    three units not on one line. (All units at one point gave a LinAlgError in the allocation.)"""
+    import numpy as np
+
+    pos = np.array([u.position for u in v.units], float)
+    r = pos - pos.mean(axis=0)
+    scale = max(float(np.abs(r).max()), 1e-12)
+    blocks = []
+    for ri in r / scale:  # moments in units of the layout's size, so the test is scale-free
+        skew = np.array([[0, -ri[2], ri[1]], [ri[2], 0, -ri[0]], [-ri[1], ri[0], 0]])
+        blocks.append(np.vstack([np.eye(3), skew]))
+    sv = np.linalg.svd(np.hstack(blocks), compute_uv=False)
+    if len(sv) < 6 or sv[5] < 1e-3 * sv[0] or float(np.abs(r).max()) < 1e-3:
+        err.lines.append(
+            "unit: the units cannot produce every force and moment (their wrench map has rank < 6): "
+            "give at least three units at positions not on one line, at least 1 mm apart")
+
+
 def _check_consistency(v: Vehicle, err: "_Errors") -> None:
+    _check_ranges(v, err)
+    if not err.lines:
+        _check_full_rank(v, err)
     n = v.n_units
     for key in ("jet_channels", "azimuth_channels", "elevation_channels"):
         if len(getattr(v.pwm, key)) != n:
@@ -391,6 +450,18 @@ def _check_consistency(v: Vehicle, err: "_Errors") -> None:
         err.add("environment.floor_depth", "a NED z below surface_depth", v.environment.floor_depth)
 
 
+def _echo(value, limit: int = 80) -> str:
+    """repr of a value as an error message shows it: at most `limit` characters (a 3-million
+    element array made an 18 MB message), control characters escaped."""
+    if isinstance(value, (list, tuple)) and len(value) > 8:
+        text = "[" + ", ".join(_echo(v, 20) for v in value[:4]) + f", ... ({len(value)} values)]"
+    elif isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10 ** 30:
+        text = f"an integer of {len(str(abs(value)))} digits"
+    else:
+        text = repr(value)
+    return text if len(text) <= limit else text[:limit - 4] + " ..."
+
+
 class _Errors:
     def __init__(self, source: str):
         self.source = source
@@ -400,9 +471,10 @@ class _Errors:
         if missing:
             self.lines.append(f"{key}: missing; expected {expected}")
         else:
-            self.lines.append(f"{key}: expected {expected}, got {got!r}")
+            self.lines.append(f"{key}: expected {expected}, got {_echo(got)}")
 
     def unknown(self, key: str, allowed: list) -> None:
+        key = key if key.isprintable() and len(key) <= 80 else _echo(key)
         self.lines.append(f"{key}: unknown key; allowed here: {', '.join(allowed)}")
 
     def raise_if_any(self) -> None:
@@ -419,7 +491,7 @@ def _replace_path(obj, parts: list[str], value, full_key: str):
         units[idx] = _replace_path(units[idx], parts[1:], value, full_key)
         return dataclasses.replace(obj, units=tuple(units))
     if not dataclasses.is_dataclass(obj) or name not in {f.name for f in dataclasses.fields(obj)}:
-        raise VehicleFileError(f"{getattr(obj, 'source', '<vehicle>')}: {full_key}: unknown key")
+        raise VehicleFileError(f"{getattr(obj, 'source', '<vehicle>')}: {_echo(full_key)}: unknown key")
     if len(parts) > 1:
         new = _replace_path(getattr(obj, name), parts[1:], value, full_key)
         return dataclasses.replace(obj, **{name: new})
@@ -427,7 +499,7 @@ def _replace_path(obj, parts: list[str], value, full_key: str):
     if "check" in f.metadata:
         ok, coerced = _coerce(_plain(value), f)
         if not ok:
-            raise VehicleFileError(f"{full_key}: expected {_expect(f)}, got {value!r}")
+            raise VehicleFileError(f"{full_key}: expected {_expect(f)}, got {_echo(_plain(value))}")
         value = coerced
     return dataclasses.replace(obj, **{name: value})
 

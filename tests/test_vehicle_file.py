@@ -296,3 +296,84 @@ def test_fragment_with_a_unit_key_stays_valid_toml_and_names_the_table():
     doc = tomllib.loads(text)
     assert doc["hydro"]["added_mass"] == [1, 2, 3, 4, 5, 6]
     assert "# unit[2].position = [0.1, 0.2, 0.3]" in text and "[[unit]] number 3" in text
+
+
+# --- issue 15 item 10: files that parse but make no sense --------------------------------------
+
+ABSURD = [
+    # (old line, new line, the one problem line expected, word by word)
+    ("mass = 6.5 ", "mass = 6500.0 ", "body.mass 6500 kg: expected 0.1-1000 kg; grams?"),
+    ("mass = 6.5 ", "mass = " + "9" * 400 + " ", "body.mass: expected a finite number > 0, got an integer of 400 digits"),
+    ("g = 9.81 ", "g = 1e300 ", "environment.g 1e+300 m/s^2: expected 1-30 m/s^2"),
+    ("gyro_noise = 0.003 ", "gyro_noise = 1e300 ", "sensors.gyro_noise 1e+300 rad/s: expected 0-1 rad/s; deg/s?"),
+    ("imu_rate = 100.0 ", "imu_rate = 1e-6 ", "sensors.imu_rate 1e-06 Hz: expected 1-4000 Hz"),
+    ("imu_rate = 100.0 ", "imu_rate = 1e7 ", "sensors.imu_rate 1e+07 Hz: expected 1-4000 Hz"),
+    ("j_range = [0.0, 0.54]", "j_range = [0.0, 1e300]", "thruster.j_range 1e+300: expected -10 to 10 for each element (advance ratio [min, max])"),
+    ("gain_per_newton = 0.0126 ", "gain_per_newton = 1e300 ",
+     "effects.azimuth_transient.gain_per_newton 1e+300 1/N: expected 0-1 1/N"),
+    ("n_max = 83.3 ", "n_max = 5000.0 ", "thruster.n_max 5000 rev/s: expected 0.1-2000 rev/s; rpm? expected rev/s"),
+    ("volume = 0.00665 ", "volume = 6.65 ", "body.volume 6.65 m^3: expected 1e-05-2 m^3; litres?"),
+]
+
+
+@pytest.mark.parametrize("old,new,expect", ABSURD, ids=[a[1][:30] for a in ABSURD])
+def test_absurd_values_are_refused_with_the_range_and_units(tmp_path, reference_text, old, new, expect):
+    """A 400-digit integer was an OverflowError traceback; 1e300 noise or g, imu_rate 1e-6 or 1e7,
+    j_range 1e300 were accepted and crashed or hung later. The message says the range in the
+    key's units and the likely slip, and echoes at most a few dozen characters."""
+    path, msg = load_error(tmp_path, edited(reference_text, old, new))
+    assert problem_lines(msg) == [expect]
+    assert len(msg) < len(path) + 200
+
+
+def test_units_that_cannot_make_every_wrench_are_refused(vehicle):
+    """All units at the origin (or on one line) cannot turn the body about every axis: the
+    allocation needs a rank-6 wrench map (today a LinAlgError in onboard, a hang in demo)."""
+    at_origin = {f"unit[{i}].position": [0.0, 0.0, 0.0] for i in range(4)}
+    on_a_line = {f"unit[{i}].position": [0.05 * i, 0.0, 0.07] for i in range(4)}
+    for values in (at_origin, on_a_line):
+        with pytest.raises(VehicleFileError, match="rank < 6"):
+            vehicle.with_values(values)
+    vehicle.with_values({f"unit[{i}].position": [0.05 * i, 0.01 * i * i, 0.07] for i in range(4)})
+
+
+def test_a_huge_array_is_echoed_in_a_few_characters(tmp_path, reference_text):
+    """A 3-million-element array made an 18 MB error message."""
+    big = "[" + ", ".join(["1.0"] * 300_000) + "]"
+    path, msg = load_error(tmp_path, edited(reference_text, "inertia = [0.060, 0.060, 0.075]", f"inertia = {big}"))
+    assert len(msg) < len(path) + 250 and "(300000 values)" in msg
+
+
+def test_control_characters_in_the_name_are_refused(tmp_path, reference_text):
+    """Issue 15 item 11: the name is printed on terminals; an escape sequence in it was printed raw."""
+    path, msg = load_error(tmp_path, edited(reference_text, 'name = "asr4"', 'name = "asr4\\u001b[2J\\u0007"'))
+    assert problem_lines(msg)[0].startswith("name: expected a non-empty string of at most 64 printable")
+    assert "\x1b" not in msg and "\x07" not in msg
+
+
+def test_a_utf8_byte_order_mark_is_accepted_like_the_commands_csv(tmp_path, reference_text):
+    """Issue 15 item 11: a UTF-8 BOM (Notepad's) was refused as invalid TOML; the CSV reader accepts one."""
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + reference_text.encode())
+    assert load_vehicle(path).body.mass == 6.5
+
+
+COMMANDS_WITH_VEHICLE = {
+    "sim": ["--commands", "c.csv", "--out", "o.tlog"], "identify": ["free-decay"], "diagnose": ["r.tlog"],
+    "prove": [], "demo": [], "onboard": ["--link", "udpin:127.0.0.1:1"], "hil": [], "ground": [], "soak": [],
+    "plot": ["r.tlog", "--out", "o"],
+}
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS_WITH_VEHICLE))
+def test_every_command_refuses_an_absurd_vehicle_with_exit_2_and_no_traceback(tmp_path, reference_text,
+                                                                              command, capsys, monkeypatch):
+    from ground.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "r.tlog").write_bytes(b"")
+    bad = tmp_path / "bad.toml"
+    bad.write_text(edited(reference_text, "mass = 6.5 ", "mass = " + "7" * 400 + " "))
+    assert main([command, *COMMANDS_WITH_VEHICLE[command], "--vehicle", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "body.mass" in err and len(err) < 600, err
