@@ -20,6 +20,7 @@ timestamp is 2026-01-01T00:00:00Z + vehicle time, so a seed gives the same file 
 from __future__ import annotations
 
 import math
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -66,6 +67,7 @@ class CommandSchedule:
 
 # --- the commands file (pure) -------------------------------------------------------------------
 
+PLAIN_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf)", re.I)
 MAX_COMMAND_TIME_S = 86_400.0  # a day of vehicle time: a row at t = 1e300 must not mean "run forever"
 
 
@@ -107,10 +109,11 @@ def parse_commands(text: str, source: str = "<string>", channels=range(1, 13)) -
             )
         nums = []
         for name, v in zip(names, values):
-            try:
-                x = float(v)
+            try:  # a plain decimal number: Python's float() also reads "1_0" as 10 and Arabic-Indic digits
+                x = float(v) if PLAIN_NUMBER.fullmatch(v) else float("invalid")
             except ValueError:
-                raise CommandsFileError(source, line_no, f"column {name}: {v!r} is not a number") from None
+                shown = repr(v) if len(v) <= 40 else repr(v[:36]) + "..."
+                raise CommandsFileError(source, line_no, f"column {name}: {shown} is not a number") from None
             if not math.isfinite(x):
                 raise CommandsFileError(source, line_no, f"column {name}: {v!r} is not a finite number")
             nums.append(x)

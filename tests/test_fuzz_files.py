@@ -31,7 +31,8 @@ REFERENCE = tomllib.loads(REFERENCE_TEXT)
 
 HOSTILE_VALUES = st.one_of(
     st.sampled_from([math.nan, math.inf, -math.inf, 1e308, -1e308, 0, -1, 2 ** 63, -(2 ** 63), True, "", "1.0",
-                     "m/s", [], {}, [[1.0]], [math.nan] * 3]),
+                     "m/s", [], {}, [[1.0]], [math.nan] * 3, 10 ** 400, -(10 ** 400), [10 ** 400] * 3,
+                     "asr4\x1b[2J", 1e300, 1e-300]),
     st.floats(), st.integers(), st.text(max_size=12),
     st.lists(st.floats(), max_size=5),
     st.integers(0, 100_000).map(lambda n: [0.5] * n),  # huge arrays
@@ -63,7 +64,17 @@ def _set(doc, path, value, delete=False):
 
 
 def _assert_finite_vehicle(v: Vehicle) -> None:
+    """Only finite numbers, each within its key's plausible range, and an allocation that builds
+    (issue 15 item 10: absurd-but-parsable files crashed or hung the commands later)."""
     import dataclasses
+
+    from onboard.allocation import QpAllocator
+    from onboard.vehicle import _check_consistency, _Errors
+
+    err = _Errors("check")
+    _check_consistency(v, err)
+    assert not err.lines, err.lines
+    assert QpAllocator(v, 0.01) is not None
 
     def walk(x):
         if dataclasses.is_dataclass(x):
@@ -82,6 +93,7 @@ def _assert_finite_vehicle(v: Vehicle) -> None:
 @given(edits=st.lists(st.tuples(st.sampled_from(LEAVES), HOSTILE_VALUES, st.booleans()), min_size=1, max_size=4),
        extra=st.one_of(st.none(), st.tuples(st.sampled_from(["", "body", "thruster", "unit"]), st.text(min_size=1, max_size=8))))
 @example(edits=[(LEAVES[0], math.nan, False)], extra=None)
+@example(edits=[(("body", "mass"), 10 ** 400, False)], extra=None)  # regression: OverflowError traceback
 def test_vehicle_with_wrong_keys_types_values_is_refused_with_the_key(edits, extra):
     doc = copy.deepcopy(REFERENCE)
     for path, value, delete in edits:
@@ -97,6 +109,35 @@ def test_vehicle_with_wrong_keys_types_values_is_refused_with_the_key(edits, ext
         v = vehicle_from_dict(doc, "fuzz.toml")
     except VehicleFileError as exc:
         assert str(exc).startswith("fuzz.toml") and "\n  " in str(exc)
+        return
+    _assert_finite_vehicle(v)
+
+
+NUMERIC_LEAVES = [p for p in LEAVES if isinstance(p[-1], str) and p[0] != "name"]
+
+
+@FUZZ
+@given(edits=st.lists(st.tuples(st.sampled_from(NUMERIC_LEAVES),
+                                st.sampled_from([0.0, -1.0, 1e-300, 1e-6, 1e-3, 1e3, 1e6, 1e300])),
+                      min_size=1, max_size=4))
+@example(edits=[(("body", "mass"), 1e3)])  # grams for kg
+@example(edits=[(("sensors", "imu_rate"), 1e-6)])
+def test_vehicle_with_values_off_by_units_is_refused_or_plausible(edits):
+    """Issue 15 item 10: a number scaled as a unit slip would (kg/g, s/ms, rev/s/rpm, 1e300):
+    refused with the key's plausible range, or a vehicle whose allocation builds."""
+    doc = copy.deepcopy(REFERENCE)
+    for path, factor in edits:
+        node = doc
+        for p in path[:-1]:
+            node = node[p]
+        old = node[path[-1]]
+        if isinstance(old, bool):
+            continue
+        node[path[-1]] = [x * factor for x in old] if isinstance(old, list) else old * factor
+    try:
+        v = vehicle_from_dict(doc, "units.toml")
+    except VehicleFileError as exc:
+        assert str(exc).startswith("units.toml") and len(str(exc)) < 2000
         return
     _assert_finite_vehicle(v)
 
@@ -124,7 +165,8 @@ def test_vehicle_text_mutations_are_refused_with_the_file_name(edits):
 # -- commands CSV (jetloop sim) ------------------------------------------------------------------
 
 DEMO_TEXT = DEMO_COMMANDS.read_text(encoding="utf-8")
-CELL = st.one_of(st.sampled_from(["nan", "inf", "-1", "1e308", "", "1500", "1100", "2000", "0", "0x10", "1_500", " "]),
+CELL = st.one_of(st.sampled_from(["nan", "inf", "-1", "1e308", "", "1500", "1100", "2000", "0", "0x10", "1_500", " ",
+                                  "1_0", "\u0661\u0665\u0660\u0660", "infinity", "1" * 5000]),
                  st.text(max_size=6))
 
 
@@ -151,6 +193,24 @@ def test_commands_csv_is_parsed_or_refused_with_the_line(edits, cells):
         return
     assert all(math.isfinite(t) and t >= 0 for t in sched.times_s)
     assert list(sched.times_s) == sorted(set(sched.times_s))
+
+
+@pytest.mark.parametrize("cell", ["1_0", "\u0661", "\uff11", "infinity"])
+def test_commands_csv_reads_only_plain_decimal_numbers(cell, tmp_path):
+    """Issue 15 item 11: Python's float() read `1_0` as t = 10 s (and Arabic-Indic or full-width
+    digits as numbers): a commands CSV cell is a plain decimal number or refused with its line;
+    identify's CSV tables read numbers the same way."""
+    head = DEMO_TEXT.splitlines()
+    rows = [i for i, ln in enumerate(head) if ln and not ln.startswith("#") and "," in ln]
+    parts = head[rows[2]].split(",")
+    parts[0] = cell
+    head[rows[2]] = ",".join(parts)
+    with pytest.raises(CommandsFileError, match=f"^cmds.csv:{rows[2] + 1}: column t: '{cell}' is not a number"):
+        parse_commands("\n".join(head), "cmds.csv")
+    csv_path = tmp_path / "t.csv"
+    csv_path.write_text(f"t,y\n0,1\n{cell},2\n", encoding="utf-8")
+    with pytest.raises(InputError, match=f"column 't': expected a number, got '{cell}'"):
+        read_columns(str(csv_path), ("t", "y"))
 
 
 # -- operator command lines and rates (jetloop ground) ---------------------------------------------

@@ -19,6 +19,7 @@ import argparse
 import csv
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -161,13 +162,16 @@ def run(args) -> int:
 # ------------------------------------------------------------------------------------------------
 # CSV in and out
 
+_PLAIN_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf)", re.I)
+
+
 def read_columns(path: str, numeric: tuple, text: tuple = ()) -> dict:
     """Columns of a CSV with a header line ('#' lines and blank lines skipped), checked."""
     if path is None:
         raise InputError("no input file given")
     p = Path(path)
     try:
-        raw = p.read_text(encoding="utf-8")
+        raw = p.read_text(encoding="utf-8-sig")  # a byte-order mark (spreadsheet exports) is not content
     except (OSError, UnicodeDecodeError) as exc:  # not UTF-8 text: a clear error, not a traceback
         raise InputError(f"{path}: cannot read: {getattr(exc, 'strerror', None) or exc}") from exc
     rows = [(i + 1, r) for i, r in enumerate(csv.reader(raw.splitlines()))
@@ -185,10 +189,11 @@ def read_columns(path: str, numeric: tuple, text: tuple = ()) -> dict:
             raise InputError(f"{path}:{line}: {len(r)} fields, expected {len(header)} ({','.join(header)})")
         for c in numeric:
             s = r[header.index(c)].strip()
-            try:
-                v = float(s)
+            try:  # a plain decimal number: float() also reads "1_0" as 10 and Arabic-Indic digits
+                v = float(s) if _PLAIN_NUMBER.fullmatch(s) else float("invalid")
             except ValueError:
-                raise InputError(f"{path}:{line}: column '{c}': expected a number, got {s!r}") from None
+                shown = repr(s) if len(s) <= 40 else repr(s[:36]) + "..."
+                raise InputError(f"{path}:{line}: column '{c}': expected a number, got {shown}") from None
             if not math.isfinite(v):
                 raise InputError(f"{path}:{line}: column '{c}': expected a finite number, got {s!r}")
             out[c].append(v)
