@@ -370,13 +370,39 @@ def _tilt_max(truth, mission: Mission) -> float:
     return float(max(tilt)) if tilt else float("nan")
 
 
+def summary_json(summary: dict) -> str:
+    """summary.json text: strict JSON, a figure that could not be measured (NaN, inf: a mission
+    with no settled leg, an onboard loop that reported nothing) is null, not the invalid NaN."""
+    def clean(v):
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [clean(x) for x in v]
+        return v
+
+    return json.dumps(clean(summary), indent=2, allow_nan=False) + "\n"
+
+
+class _Figure(float):
+    """A figure for the console table: formats as usual, or as 'n/a' when not measured (NaN)."""
+
+    def __format__(self, spec: str) -> str:
+        return super().__format__(spec) if math.isfinite(self) else "n/a"
+
+    def __mul__(self, k):
+        return _Figure(float(self) * k)
+
+
 def table(summary: dict) -> str:
+    summary = {k: _Figure(v) if isinstance(v, float) else v for k, v in summary.items()}
     rows = [
         ("tracking", "depth RMS", f"{summary['depth_rms_m'] * 100:.1f} cm"),
         ("", "depth max |error|", f"{summary['depth_max_abs_m'] * 100:.1f} cm"),
-        ("", "yaw RMS", f"{math.degrees(summary['yaw_rms_rad']):.2f} deg"),
+        ("", "yaw RMS", f"{summary['yaw_rms_rad'] * (180 / math.pi):.2f} deg"),
         ("", "surge speed RMS", f"{summary['speed_rms_m_s'] * 100:.1f} cm/s"),
-        ("", "max |roll|, |pitch|", f"{math.degrees(summary['tilt_max_rad']):.1f} deg"),
+        ("", "max |roll|, |pitch|", f"{summary['tilt_max_rad'] * (180 / math.pi):.1f} deg"),
         ("allocation", "QP solve median / p99", f"{summary['qp_solve_median_us']:.0f} / {summary['qp_solve_p99_us']:.0f} us"),
         ("", "fallbacks", f"{summary['allocation_fallbacks']}"),
         ("", "mean weighted wrench error", f"{summary['allocation_weighted_error_mean']:.3f}"),
@@ -516,7 +542,7 @@ def run(args) -> int:
         return 1
     summary = summarise(result, mission, vehicle)
     plot(result, mission, vehicle, out / "mission.png")
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (out / "summary.json").write_text(summary_json(summary))
     say("")
     say(table(summary))
     if summary["detections"]:
