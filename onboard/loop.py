@@ -102,6 +102,9 @@ class WallClock:
     def observe(self, t_vehicle: float) -> None:
         pass
 
+    def rebase(self, t_vehicle: float) -> None:
+        pass
+
 
 class VehicleClock:
     """Lock-step / replay: the newest vehicle time the sensor stream has reached."""
@@ -121,6 +124,47 @@ class VehicleClock:
     def observe(self, t_vehicle: float) -> None:
         if t_vehicle > self._t:
             self._t = t_vehicle
+
+    def rebase(self, t_vehicle: float) -> None:
+        """The sensor stream's time base moved (StampGuard re-anchored): time is where it now is."""
+        self._t = t_vehicle
+
+
+class StampGuard:
+    """Sensor time stamps against the newest one accepted: a stamp more than `max_skew_s` away from
+    it (ahead or behind) is held back, not believed, until `confirm` such stamps in a row agree
+    with each other within `max_skew_s`; then the stream really moved (an autopilot reboot, a gap
+    in a replayed log) and the guard re-anchors on it. So one stamp far in the future, corrupt or
+    hostile, never moves the clock or the IMU ordering on (issue 15: a lone HIGHRES_IMU stamped
+    1e12 us made every later real sample "out of order" and tripped the failsafe for good), and
+    a real jump costs `confirm` samples. `admit(t)` -> "ok", "held" or "rebased"."""
+
+    def __init__(self, max_skew_s: float = 1.0, confirm: int = 3):
+        self.max_skew_s = float(max_skew_s)
+        self.confirm = int(confirm)
+        self.newest = -math.inf
+        self._candidate = None  # (first, newest, count) of stamps that disagree with `newest`
+        self.held = 0  # stamps held back (never believed)
+        self.rebases = 0
+
+    def admit(self, t: float) -> str:
+        if self.newest == -math.inf or abs(t - self.newest) <= self.max_skew_s:
+            self._candidate = None  # the stream goes on where it was: a held stamp was a lone one
+            self.newest = max(self.newest, t)
+            return "ok"
+        c = self._candidate
+        if c is not None and abs(t - c[1]) <= self.max_skew_s:
+            c = (c[0], max(c[1], t), c[2] + 1)
+        else:
+            c = (t, t, 1)
+        if c[2] >= self.confirm:
+            self._candidate = None
+            self.newest = c[1]
+            self.rebases += 1
+            return "rebased"
+        self._candidate = c
+        self.held += 1
+        return "held"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -221,6 +265,8 @@ class LoopConfig:
     signing_key: bytes | None = None  # MAVLink 2 signing on: unsigned commands refused (ground.commands)
     fault_monitor: bool = True  # onboard.monitor: detect, report and reconfigure around faults
     ground_systems: tuple = GCS_SYSTEMS  # source systems whose commands/setpoints count (others: foreign)
+    autopilot: tuple | None = None  # (system, component 0=any) whose sensor data counts; None: first seen on the main link
+    max_stamp_skew_s: float = 1.0  # a sensor stamp further than this from the newest is held (StampGuard)
 
     def __post_init__(self):
         if not (math.isfinite(self.control_rate_hz) and self.control_rate_hz > 0):
@@ -233,6 +279,8 @@ class LoopConfig:
             raise ValueError(f"estimator_backend: expected 'filterpy' or 'compiled', got {self.estimator_backend!r}")
         if self.mode_at_start not in MODES:
             raise ValueError(f"mode_at_start: expected one of {sorted(MODES)}, got {self.mode_at_start!r}")
+        if not (math.isfinite(self.max_stamp_skew_s) and self.max_stamp_skew_s > 0):
+            raise ValueError(f"max_stamp_skew_s: expected a time > 0 s, got {self.max_stamp_skew_s!r}")
 
 
 PHASES = ("estimate", "control", "allocate", "checks", "monitor")  # of a control step, in order (Overrun)
@@ -313,6 +361,8 @@ class LoopStats:
     faults_seen: int = 0  # OR of every onboard.monitor.Fault flag ever raised
     fault_events: deque = field(default_factory=lambda: deque(maxlen=10_000))  # (t_s, Fault, text)
     frozen_imu: int = 0  # IMU samples kept out of the estimator because the IMU is frozen
+    stamps_held: int = 0  # sensor samples whose stamp sat too far from the stream's time (StampGuard)
+    time_rebases: int = 0  # times the sensor stream's time base moved for good and the loop followed
 
     def summary(self) -> dict:
         st = np.asarray(self.step_time_s) * 1e3
@@ -343,6 +393,8 @@ class LoopStats:
             "step_errors": self.step_errors,
             "faults_seen": int(self.faults_seen),
             "fault_events": [(t, int(f), text) for t, f, text in self.fault_events],
+            "stamps_held": self.stamps_held,
+            "time_rebases": self.time_rebases,
             **self.security.summary(),
         }
 
@@ -407,7 +459,8 @@ class OnboardLoop:
 
         self.gate = CommandGate(config.signing_key, config.ground_systems, envelope=vehicle.envelope,
                                 own_system=getattr(getattr(link, "mav", None), "srcSystem", 1),
-                                counts=self.stats.security)
+                                counts=self.stats.security, autopilot=config.autopilot)
+        self._stamps = StampGuard(config.max_stamp_skew_s)
         self.rates = StreamRates({**{n: config.telemetry_rate_hz for n in TELEMETRY_STREAMS},
                                   "SERVO_OUTPUT_RAW": config.control_rate_hz})  # the ground's copy
         self._queue: list = []  # (t, arrival order, kind, sample) awaiting the estimator
@@ -519,7 +572,7 @@ class OnboardLoop:
         if self.ground is not None:
             g = self.ground.recv(0.0)
             while g is not None:
-                self.handle(g)
+                self.handle(g, link="ground")
                 g = self.ground.recv(0.0)
 
     def _tick_due(self) -> bool:
@@ -532,10 +585,17 @@ class OnboardLoop:
         return self.clock.now() >= self._next_tick
 
     # -- input ---------------------------------------------------------------------------------
-    def handle(self, m) -> None:
+    def handle(self, m, link: str = "main") -> None:
         """One received message: a sensor sample into the queue, a setpoint or command applied.
+        `link`: "main" (the autopilot's or plant's) or "ground", where it came from; sensor data
+        counts only from the autopilot on the main link (onboard.signing.CommandGate).
         What does not decode (NaN, inf, a field out of range) is counted and dropped."""
         name = m.get_type()
+        verdict = self.gate.admit(m, link)  # signing, sources, envelope, arm/mode params: counted there
+        for reply in verdict.replies:  # COMMAND_ACK DENIED / STATUSTEXT "setpoint refused: ..."
+            (self.ground or self.link).send(reply)
+        if not verdict.accepted:
+            return
         mon = self.monitor
         if mon is not None:
             sysid = m.get_srcSystem()
@@ -543,11 +603,6 @@ class OnboardLoop:
                 # lock-step's frame marker may overtake the data (hil.faults never delays it)
                 mon.packet(sysid, m.get_srcComponent(), m.get_seq(),
                            not (name == "SYSTEM_TIME" and self.clock.lockstep))
-        verdict = self.gate.admit(m)  # signing, foreign system, envelope, arm/mode params: counted there
-        for reply in verdict.replies:  # COMMAND_ACK DENIED / STATUSTEXT "setpoint refused: ..."
-            (self.ground or self.link).send(reply)
-        if not verdict.accepted:
-            return
         try:
             if name in IMU_RANK:
                 self._on_imu(m)
@@ -556,18 +611,24 @@ class OnboardLoop:
                     return  # ArduSub's depth sensor is SCALED_PRESSURE2; the other is the board's
                 self._has_pressure2 |= name == "SCALED_PRESSURE2"
                 s = codec.decode_pressure(m)
+                if not self._stamp_ok(s.time_s):
+                    return
                 if mon is not None:
                     mon.sample_age(self.clock.now(), s.time_s)
                 self._observe(s.time_s)
                 self._enqueue(s.time_s, "depth", depth_from_pressure(s.press_abs_pa, self.vehicle))
             elif name == "ATTITUDE":
                 s = codec.decode_attitude(m)
+                if not self._stamp_ok(s.time_s):
+                    return
                 if mon is not None:
                     mon.sample_age(self.clock.now(), s.time_s)
                 self._observe(s.time_s)
                 self._enqueue(s.time_s, "attitude", s)
             elif name == "SYSTEM_TIME":
                 t = m.time_boot_ms / 1e3
+                if not self._stamp_ok(t):
+                    return
                 self._observe(t)
                 self._marker_t = max(self._marker_t, t)
                 self._answer_marker(t)
@@ -592,6 +653,35 @@ class OnboardLoop:
             if mon is not None and name in IMU_RANK:
                 mon.imu_invalid(self.clock.now())  # an IMU reading NaN / inf
 
+    def _stamp_ok(self, t: float) -> bool:
+        """Whether a sensor sample stamped t may count (StampGuard); follows a confirmed new time base."""
+        verdict = self._stamps.admit(t)
+        if verdict == "held":
+            self.stats.stamps_held += 1
+            return False
+        if verdict == "rebased":
+            self._rebase(t)
+        return True
+
+    def _rebase(self, t: float) -> None:
+        """The sensor stream's time moved for good (confirmed by StampGuard): the IMU ordering
+        restarts there; on the vehicle clock (lock-step, replay), time follows it, back too (a
+        clock a poisoned first sample ran ahead), and IMU freshness is counted from it, because a
+        jump of the stream's own time is not a stretch of real time without an IMU."""
+        self.stats.time_rebases += 1
+        self._last_imu_stamp = -math.inf
+        if not self.clock.lockstep:
+            return  # real time: the wall clock is the time; only the ordering was the stream's
+        if t < self.clock.now():
+            self.clock.rebase(t)
+            self._queue.clear()  # samples of the abandoned time base
+            self._est_started = False
+            self._marker_t = -math.inf
+            self._last_answer_us = -1
+            self._next_tick = None  # set again by the next sample (_observe)
+        if self.fs_state.last_imu_s is not None:
+            self.fs_state = replace(self.fs_state, last_imu_s=t)
+
     def _observe(self, t: float) -> None:
         self.clock.observe(t)
         if self._next_tick is None:
@@ -605,6 +695,8 @@ class OnboardLoop:
             self.stats.ignored_imu += 1  # a better IMU stream is present
             return
         s = codec.decode_imu(m)
+        if not self._stamp_ok(s.time_s):
+            return
         mon = self.monitor
         if mon is not None:
             mon.sample_age(self.clock.now(), s.time_s)  # late ones too: their age is the point
@@ -937,13 +1029,30 @@ class OnboardLoop:
             "armed": 1.0 if self.armed else 0.0,
             "est_rej": float(est.health.rejected_total),
             "in_rej": float(st.rejected_inputs),
-            "link_bad": float(self.link.bad_packets + self.link.unknown_packets),
+            "link_bad": float(self.link_errors()),  # every link's, the ground's included
         }
+        foreign = self.link_foreign()
+        if foreign:  # datagrams from senders other than a link's peer, dropped unread
+            values["link_foe"] = float(foreign)
+        if self.stats.stamps_held:
+            values["stamp_held"] = float(self.stats.stamps_held)
         if self.monitor is not None:
             values["faults"] = float(int(self.monitor.faults))  # onboard.monitor.Fault bitmask
         values.update(self.stats.security.telemetry())  # sig_unsig, sig_bad, sig_replay, foreign, ... once non-zero
         for name, value in values.items():
             out.send(mavlink.MAVLink_named_value_float_message(ms, name.encode(), float(value)))
+
+    def links(self) -> dict:
+        """The loop's links by role: {"link": main, "ground": ground link (when there is one)}."""
+        return {"link": self.link} if self.ground is None else {"link": self.link, "ground": self.ground}
+
+    def link_errors(self) -> int:
+        """Bad and unknown packets over every link (telemetry link_bad, SYS_STATUS errors_comm)."""
+        return sum(getattr(lk, "bad_packets", 0) + getattr(lk, "unknown_packets", 0) for lk in self.links().values())
+
+    def link_foreign(self) -> int:
+        """Datagrams from anyone but a link's peer, over every link (dropped unread)."""
+        return sum(getattr(lk, "foreign_datagrams", 0) for lk in self.links().values())
 
     def _sys_status(self, step_s: float):
         S = mavlink
@@ -968,7 +1077,7 @@ class OnboardLoop:
                 health &= ~S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
             drop = min(int(round(mon.drop_rate * 10_000)), 10_000)  # c%
         load = int(min(step_s / self.period_s, 1.0) * 1000)
-        errors = min(self.link.bad_packets + self.link.unknown_packets, 0xFFFF)
+        errors = min(self.link_errors(), 0xFFFF)
         return S.MAVLink_sys_status_message(present, present, health, load, 0, -1, -1, drop, errors,
                                             min(self.stats.rejected_inputs, 0xFFFF), 0, 0, 0)
 

@@ -30,6 +30,18 @@ It lives in `onboard` because the robot must carry it; the ground station import
    refused: ..." (`setpoints_refused`), the previous setpoint stays.
 Rejections 1-2 are silent on the link (nothing is sent to an unknown or unproven sender);
 every one is counted in `SecurityCounts`, which the loop reports in telemetry and its summary.
+
+Sensor data and actuator feedback (`SENSOR_MESSAGES`: IMU, pressure, attitude, the SYSTEM_TIME
+frame marker, ESC rpm, joint angles) move the vehicle's clock, its estimate and its failsafe as
+surely as a command does (issue 15: one unsigned HIGHRES_IMU from system 99, stamped 11 days
+ahead, sent to the ground port of a signed robot tripped its IMU failsafe for good). So:
+- with a key, every message that reaches the gate from a wire must be signed with it (the
+  autopilot or plant signs too: `jetloop hil --key`, or ArduPilot's signing on that port);
+  RADIO_STATUS alone is exempt, as ArduPilot exempts it;
+- sensor data is accepted only on the main link (the ground link never carries it) and only from
+  the autopilot: the (system, component) configured (`autopilot=`), else the first one seen
+  sending sensor data on the main link; a ground system (`ground_systems`) never becomes it.
+  Anything else is `sensors_refused`, silently.
 """
 
 from __future__ import annotations
@@ -57,6 +69,15 @@ COMMAND_MESSAGES = frozenset({
     "SET_ATTITUDE_TARGET", "MANUAL_CONTROL", "SET_MODE", "RC_CHANNELS_OVERRIDE", "PARAM_SET",
     "SETUP_SIGNING", "MISSION_ITEM", "MISSION_ITEM_INT",
 })
+
+
+# Sensor data and actuator feedback the onboard loop reads: accepted from the autopilot on the main link only.
+SENSOR_MESSAGES = frozenset({
+    "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU", "SCALED_PRESSURE",
+    "SCALED_PRESSURE2", "ATTITUDE", "SYSTEM_TIME", "ESC_TELEMETRY_1_TO_4", "ESC_TELEMETRY_5_TO_8",
+    "ESC_TELEMETRY_9_TO_12", "ACTUATOR_OUTPUT_STATUS",
+})
+UNSIGNED_EXEMPT = frozenset({"RADIO_STATUS"})  # what a signed channel still takes unsigned (as ArduPilot)
 
 
 class SigningError(ValueError):
@@ -135,7 +156,7 @@ def signature_ok(buf: bytes, key: bytes) -> bool:
 class SecurityCounts:
     """What the robot refused, by reason (and what signing accepted): the loop's telemetry and summary."""
 
-    accepted: int = 0  # signed commands that passed the signature and timestamp checks
+    accepted: int = 0  # signed packets (commands, and with a key every packet) that passed the signature and timestamp checks
     unsigned: int = 0
     bad_signature: int = 0
     replayed: int = 0
@@ -143,19 +164,21 @@ class SecurityCounts:
     foreign: int = 0
     setpoints_refused: int = 0
     commands_denied: int = 0
+    sensors_refused: int = 0  # sensor data from the ground link, or from anyone but the autopilot
 
     def summary(self) -> dict:
         return {"sig_accepted": self.accepted, "sig_unsigned": self.unsigned, "sig_bad": self.bad_signature,
                 "sig_replayed": self.replayed, "sig_too_many_streams": self.too_many_streams,
                 "foreign_commands": self.foreign, "setpoints_refused": self.setpoints_refused,
-                "commands_denied": self.commands_denied}
+                "commands_denied": self.commands_denied, "sensors_refused": self.sensors_refused}
 
     def telemetry(self) -> dict:
         """NAMED_VALUE_FLOAT names (<= 10 characters) -> value, for the counters that are not zero
         (a quiet link costs no telemetry bandwidth; a counter appears with its first event)."""
         named = {"sig_ok": self.accepted, "sig_unsig": self.unsigned, "sig_bad": self.bad_signature,
                  "sig_replay": self.replayed, "sig_strm": self.too_many_streams, "foreign": self.foreign,
-                 "sp_refused": self.setpoints_refused, "cmd_denied": self.commands_denied}
+                 "sp_refused": self.setpoints_refused, "cmd_denied": self.commands_denied,
+                 "sens_ref": self.sensors_refused}
         return {k: float(v) for k, v in named.items() if v}
 
 
@@ -241,15 +264,24 @@ ACCEPT = Verdict(True)
 
 
 class CommandGate:
-    """Everything the robot checks before a ground message acts (see the module docstring):
-    `admit(msg) -> Verdict`. Non-commands (sensors, telemetry, heartbeats) always pass."""
+    """Everything the robot checks before an inbound message acts (see the module docstring):
+    `admit(msg, link) -> Verdict`, `link` "main" (the autopilot's or plant's) or "ground".
+    With a key every message from a wire needs a good signature; sensor data must come from the
+    autopilot on the main link; commands and setpoints go through the checks 1-3."""
 
     def __init__(self, key: bytes | None = None, ground_systems=GCS_SYSTEMS, own_system: int = 1,
                  envelope=None, counts: SecurityCounts | None = None, clock=time.monotonic,
-                 signing_clock=time.time):
+                 signing_clock=time.time, autopilot: tuple | None = None):
         systems = tuple(ground_systems)
         if not systems or not all(isinstance(s, int) and 1 <= s <= 255 for s in systems):
             raise SigningError(f"ground_systems: expected system ids 1..255, got {ground_systems!r}")
+        if autopilot is not None:
+            ok = (isinstance(autopilot, tuple) and len(autopilot) == 2 and all(isinstance(x, int) for x in autopilot)
+                  and 1 <= autopilot[0] <= 255 and 0 <= autopilot[1] <= 255)
+            if not ok or autopilot[0] in systems:
+                raise SigningError(f"autopilot: expected (system 1..255 not a ground system, component 0..255; "
+                                   f"0: any), got {autopilot!r}")
+        self.autopilot = autopilot  # (system, component) whose sensor data counts; None: the first seen
         if envelope is None:
             from .vehicle import Envelope
 
@@ -262,15 +294,18 @@ class CommandGate:
         self.clock = clock
         self._next_text = -math.inf
 
-    def admit(self, msg) -> Verdict:
+    def admit(self, msg, link: str = "main") -> Verdict:
         name = msg.get_type()
-        if name not in COMMAND_MESSAGES:
-            return ACCEPT
-        if self.signing.on:
+        wire = len(msg.get_msgbuf()) > 0  # built in this process: no source system to check
+        command = name in COMMAND_MESSAGES
+        if self.signing.on and (command or (wire and name not in UNSIGNED_EXEMPT)):
             why = self.signing.check(msg)
             if why is not None:
                 return Verdict(False, why)
-        wire = len(msg.get_msgbuf()) > 0  # built in this process: no source system to check
+        if name in SENSOR_MESSAGES:
+            return self._sensor(msg, link) if wire else ACCEPT
+        if not command:
+            return ACCEPT
         if wire and msg.get_srcSystem() not in self.ground_systems:
             self.counts.foreign += 1
             return Verdict(False, f"foreign source system {msg.get_srcSystem()}")
@@ -303,6 +338,23 @@ class CommandGate:
             self.counts.setpoints_refused += 1
             return Verdict(False, why, self._text(why))
         return ACCEPT
+
+    def _sensor(self, msg, link: str) -> Verdict:
+        """Sensor data: from the autopilot on the main link, else refused (silently, counted)."""
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if link != "main":
+            why = f"sensor data on the {link} link"
+        elif src[0] in self.ground_systems or src[0] == 0:
+            why = f"sensor data from ground system {src[0]}"
+        elif self.autopilot is None:
+            self.autopilot = src  # the first sender of sensor data on the main link is the autopilot
+            return ACCEPT
+        elif src[0] == self.autopilot[0] and self.autopilot[1] in (0, src[1]):
+            return ACCEPT
+        else:
+            why = f"sensor data from {src[0]}:{src[1]}, not the autopilot {self.autopilot[0]}:{self.autopilot[1]}"
+        self.counts.sensors_refused += 1
+        return Verdict(False, why)
 
     def _text(self, why: str) -> tuple:
         """A STATUSTEXT warning saying why, at most one per REFUSAL_TEXT_PERIOD_S (a flood of bad

@@ -41,37 +41,42 @@ FUZZ = settings(max_examples=15, deadline=timedelta(seconds=60),  # a hang, not 
 
 def _good(t: float) -> list:
     """A well-formed frame of sensor messages at vehicle time t, then its SYSTEM_TIME marker."""
-    return [codec.encode_imu(ImuSample(t, (0.0, 0.0, -9.80665), (0.0, 0.0, 0.0))),
+    wobble = 1e-3 * math.sin(100.0 * t)  # never exactly repeated: 10 identical samples are a frozen IMU
+    return [codec.encode_imu(ImuSample(t, (wobble, 0.0, -9.80665), (0.0, wobble, 0.0))),
             codec.encode_pressure(PressureSample(t, 101325.0 + 1025 * 9.80665 * 0.5, 20.0)),
             codec.encode_attitude(AttitudeSample(t, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)),
             mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t))]
 
 
 class Rig:
-    """An onboard loop on a real udpin link, an autopilot (system 1) and a ground (255) sending to it."""
+    """An onboard loop on a real udpin link, an autopilot (system 1) and a ground (255) sending to it
+    through the autopilot's socket (the link's one peer, as a router forwards a ground's packets)."""
 
     def __init__(self, vehicle):
         self.link = Link("udpin:127.0.0.1:0")
-        self.loop = OnboardLoop(vehicle, self.link, VehicleClock(block_s=0.005))
+        self.ground_link = Link("udpin:127.0.0.1:0")  # the robot's --ground link, a station behind it
+        self.loop = OnboardLoop(vehicle, self.link, VehicleClock(block_s=0.005), ground=self.ground_link)
         port = self.link.local_address[1]
         self.autopilot = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
         self.ground = Link(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+        self.station = Link(f"udpout:127.0.0.1:{self.ground_link.local_address[1]}", 255, 190)
 
     def send(self, msgs, sender=None) -> None:
-        with (sender or self.autopilot).batch():
-            for m in msgs:
-                (sender or self.autopilot).send(m)
+        sender = sender or self.autopilot
+        data = b"".join(sender.pack(m) for m in msgs)  # one datagram, from the peer's socket
+        self.autopilot.write_raw(data)
 
     def pump(self, polls: int = 60) -> None:
-        """poll() until the link is quiet (bounded: a hang shows as the example's deadline)."""
+        """poll() until the links are quiet (bounded: a hang shows as the example's deadline)."""
         for _ in range(polls):
-            before = self.link.bytes_in
+            before = self.link.bytes_in + self.ground_link.bytes_in
             self.loop.poll()
-            if self.link.bytes_in == before and not self.loop._tick_due() and not self.link._ready:
+            quiet = self.link.bytes_in + self.ground_link.bytes_in == before
+            if quiet and not self.loop._tick_due() and not self.link._ready and not self.ground_link._ready:
                 break
 
     def close(self) -> None:
-        for lk in (self.link, self.autopilot, self.ground):
+        for lk in (self.link, self.ground_link, self.autopilot, self.ground, self.station):
             lk.close()
 
 
@@ -106,6 +111,7 @@ def _armed_rig(rigs):
     for i in range(2, 8):
         rig.send(_good(0.01 * i))
         rig.pump()
+    assert rig.loop.armed  # the ground's command reached the loop: the hostile ones below do too
     return rig
 
 
@@ -185,3 +191,66 @@ def test_garbage_between_frames_is_counted_and_the_loop_flies_on(rigs, vehicle, 
     s = rig.link.stats()
     assert rig.loop.stats.steps >= steps + 8
     assert s["garbage_bytes"] >= 0.9 * sent  # a random packet with a good CRC is ~1 in 65536 per marker
+
+
+# -- hostile peers (issue 15): a second sender on udpin, a foreign system sending sensor data ------------
+
+def _counts(loop) -> tuple:
+    st = loop.stats
+    return (st.rejected_inputs, st.ignored_imu, st.stamps_held, st.security.summary())
+
+
+@FUZZ
+@given(datagrams=st.lists(st.one_of(st.binary(min_size=1, max_size=600),
+                                    st.tuples(hostile_any(SENSORS + GROUND), st.integers(0, 255))),
+                          min_size=1, max_size=6))
+def test_a_second_sender_on_udpin_is_never_read_nor_answered(rigs, vehicle, datagrams):
+    """Another socket sends junk or any MAVLink (as any system) to the robot's udpin link while
+    the autopilot flies it: every datagram is dropped unread and counted, nothing the robot
+    sends reaches the intruder, and nothing the loop counts or flies changes."""
+    import socket
+
+    rig = _armed_rig(rigs)
+    before = _counts(rig.loop)
+    steps = rig.loop.stats.steps
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as intruder:
+        intruder.bind(("127.0.0.1", 0))
+        intruder.setblocking(False)
+        for d in datagrams:
+            if isinstance(d, tuple):
+                msg, sysid = d
+                d = bytes(msg.pack(mavlink.MAVLink(None, sysid, 1)))
+            intruder.sendto(d, rig.link.local_address)
+        _fly(rig, [], from_ground=False)
+        try:
+            answered = intruder.recv(65535)
+        except BlockingIOError:
+            answered = None
+    assert answered is None, "the robot answered the intruder"
+    assert rig.link.foreign_datagrams == len(datagrams)
+    assert _counts(rig.loop) == before
+    assert rig.loop.stats.steps >= steps + 5 and rig.loop.armed and not rig.loop.failsafe_active
+    _check_command(rig.loop, vehicle)
+
+
+@FUZZ
+@given(msgs=st.lists(hostile_any(SENSORS), min_size=1, max_size=6), sysid=st.integers(2, 254),
+       on_ground_link=st.booleans())
+def test_a_foreign_system_sending_sensor_data_changes_nothing(rigs, vehicle, msgs, sysid, on_ground_link):
+    """Any sensor or actuator-feedback message, with any values and stamps, from a system that is
+    not the autopilot (through the autopilot's own socket), or from anyone on the ground link:
+    refused and counted one by one; the clock, the IMU ordering and the failsafe are untouched."""
+    rig = _armed_rig(rigs)
+    loop = rig.loop
+    t_before, imu_before = loop.clock.now(), loop._last_imu_stamp
+    refused = loop.stats.security.sensors_refused
+    mav = mavlink.MAVLink(None, sysid, 1)
+    data = b"".join(bytes(m.pack(mav)) for m in msgs)
+    (rig.station if on_ground_link else rig.autopilot).write_raw(data)
+    rig.pump()
+    assert loop.stats.security.sensors_refused == refused + len(msgs)
+    assert (loop.clock.now(), loop._last_imu_stamp) == (t_before, imu_before)
+    ignored = loop.stats.ignored_imu
+    _fly(rig, [], from_ground=False)
+    assert loop.stats.ignored_imu == ignored and not loop.failsafe_active and loop.armed
+    _check_command(loop, vehicle)

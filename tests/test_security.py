@@ -263,15 +263,20 @@ def test_a_long_running_signed_ground_is_obeyed_by_a_robot_that_just_started(rob
     mav = mavlink.MAVLink(None, 255, 190)
     enable_signing(mav, KEY)
     mav.signing.timestamp = stale
-    robot.send(bytes(depth_yaw(1.25).pack(mav)))  # what the ground would send without the refresh
-    assert robot.loop.gate.counts.replayed == 1 and robot.loop.setpoint.depth_m != 1.25
+    # one ground, one socket: the robot's udpin link answers (and reads) only its peer
     ground = GroundSession(f"udpout:127.0.0.1:{robot.link.local_address[1]}", key=KEY)
     try:
+        ground.link.write_raw(bytes(depth_yaw(1.25).pack(mav)))  # what the ground would send without the refresh
+        robot.loop.handle(robot.link.recv(5.0))
+        assert robot.loop.gate.counts.replayed == 1 and robot.loop.setpoint.depth_m != 1.25
         ground.link.mav.signing.timestamp = stale
         ground.send(depth_yaw(1.25))
         m = robot.link.recv(5.0)
+        while m is not None and m.get_type() != "SET_POSITION_TARGET_LOCAL_NED":
+            robot.loop.handle(m)
+            m = robot.link.recv(5.0)
         robot.loop.handle(m)
-        assert robot.loop.setpoint.depth_m == 1.25 and robot.loop.gate.counts.accepted == 1
+        assert robot.loop.setpoint.depth_m == 1.25 and robot.loop.gate.counts.replayed == 1
     finally:
         ground.close()
 
@@ -365,9 +370,12 @@ def test_jetloop_onboard_process_counts_each_attack_in_its_telemetry_and_exit_su
                    packet(depth_yaw(1.3), OTHER_KEY), altered(good, -13, 77),  # bad x2
                    packet(depth_yaw(1.4), KEY, src=42, unix_s=time.time() + 1),  # foreign
                    packet(depth_yaw(9.0), KEY, unix_s=time.time() + 2)]  # outside the envelope
-        def imu(k):  # IMU samples start the control ticks (and the telemetry): sensors need no signature
+        def imu(k):  # IMU samples start the control ticks (and the telemetry); with a key, signed like all input
             return packet(mavlink.MAVLink_highres_imu_message(10_000 * k, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0,
-                                                              0, 63, 0), src=1, comp=1)
+                                                              0, 63, 0), KEY, src=1, comp=1, link_id=1,
+                          unix_s=t_imu + k * 1e-3)
+
+        t_imu = time.time()
 
         link.write_raw(imu(1))
         for data in attacks:

@@ -23,8 +23,8 @@ def _parse(data: bytes):
     return mavlink.MAVLink(None).parse_char(data)
 
 
-def _signed(msg, key=KEY, unix_s=None, link_id=0):
-    mav = mavlink.MAVLink(None, 255, 190)
+def _signed(msg, key=KEY, unix_s=None, link_id=0, src=255, comp=190):
+    mav = mavlink.MAVLink(None, src, comp)
     enable_signing(mav, key, link_id=link_id, unix_s=unix_s)
     return _parse(msg.pack(mav))
 
@@ -129,8 +129,11 @@ def test_onboard_loop_with_a_key_obeys_only_signed_commands():
         c = loop.gate.counts
         assert (c.unsigned, c.accepted) == (2, 2)
         assert loop.stats.summary()["sig_unsigned"] == 2
-        # telemetry and sensors need no signature
+        # with a key, sensor data must be signed too (issue 15: one unsigned sample stamped far ahead
+        # tripped a signed robot's failsafe)
         loop.handle(_parse(mavlink.MAVLink_scaled_pressure2_message(10, 1013.25, 0, 2000, 0).pack(mavlink.MAVLink(None, 1, 1))))
+        assert len(loop._queue) == 0 and c.unsigned == 3
+        loop.handle(_signed(mavlink.MAVLink_scaled_pressure2_message(10, 1013.25, 0, 2000, 0), src=1, comp=1))
         assert loop.stats.rejected_inputs == 0 and len(loop._queue) == 1
     finally:
         link.close()

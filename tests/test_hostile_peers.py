@@ -1,0 +1,316 @@
+"""Hostile peers against the onboard loop (issue 15 items 1 and 3), over real UDP sockets on 127.0.0.1.
+
+The rig is the robot as `jetloop onboard --link udpout:PLANT --ground udpin:G` runs it, in
+lock-step: a plant (udpin, system 1 component 1) sends sensor frames, a ground station (udpout to
+G, system 255) commands, and attackers send from their own sockets. Sensor data must come from the
+autopilot on the main link only; with a key, every inbound message must be signed; a stamp far in
+the future never poisons the time or the IMU ordering; garbage on the ground link is counted like
+garbage on the main link.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import socket
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from onboard import mavlink_codec as codec
+from onboard.link import Link
+from onboard.loop import LoopConfig, OnboardLoop, StampGuard, VehicleClock, arm_command, depth_yaw_target
+from onboard.sensors import ImuSample, PressureSample
+from onboard.signing import enable_signing
+from onboard.vehicle import load_vehicle
+
+V = load_vehicle()
+KEY = hashlib.sha256(b"jetloop hostile peers").digest()
+FUTURE_US = 10 ** 12  # the adversarial run's stamp: 11.6 days ahead
+
+
+def imu(t: float):
+    wobble = 1e-3 * math.sin(100.0 * t)  # a real IMU is never exactly repeated (the monitor calls that frozen)
+    return codec.encode_imu(ImuSample(t, (wobble, 0.0, -9.80665), (0.0, wobble, 0.0)))
+
+
+def frame(t: float) -> list:
+    """What the plant sends for instant t: IMU, depth, then the SYSTEM_TIME frame marker."""
+    e = V.environment
+    return [imu(t), codec.encode_pressure(PressureSample(t, e.p_atm + e.rho * e.g * 0.3, 20.0)),
+            mavlink.MAVLink_system_time_message(0, codec.time_boot_ms(t))]
+
+
+def hostile_imu(time_usec: int = FUTURE_US):
+    return mavlink.MAVLink_highres_imu_message(time_usec, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 63, 0)
+
+
+def wire(msg, src: int, comp: int = 1, key: bytes | None = None) -> bytes:
+    mav = mavlink.MAVLink(None, src, comp)
+    if key is not None:
+        enable_signing(mav, key)
+    return bytes(msg.pack(mav))
+
+
+class Robot:
+    """The onboard loop with a main link to a plant and a udpin ground link a ground station talks to."""
+
+    def __init__(self, key: bytes | None = None, **config):
+        self.plant = Link("udpin:127.0.0.1:0", source_system=1, source_component=1)
+        self.main = Link(f"udpout:127.0.0.1:{self.plant.local_address[1]}", 1, 191, signing_key=key)
+        self.ground = Link("udpin:127.0.0.1:0", 1, 191, signing_key=key)
+        self.station = Link(f"udpout:127.0.0.1:{self.ground.local_address[1]}", 255, 190)
+        if key is not None:
+            enable_signing(self.plant.mav, key)
+            enable_signing(self.station.mav, key)
+        self.loop = OnboardLoop(V, self.main, VehicleClock(block_s=0.01), LoopConfig(signing_key=key, **config),
+                                ground=self.ground)
+        self.loop.start()
+        assert self.plant.recv(2.0) is not None  # the robot's hello: the plant's udpin peer
+        self.station.send(codec.heartbeat())  # the station's hello: the ground link's peer
+        self.t = 0.0
+
+    def pump(self, polls: int = 80) -> None:
+        for _ in range(polls):
+            before = self.main.bytes_in + self.ground.bytes_in
+            self.loop.poll()
+            quiet = self.main.bytes_in + self.ground.bytes_in == before
+            if quiet and not self.loop._tick_due() and not self.main._ready and not self.ground._ready:
+                return
+
+    def fly(self, n: int = 5) -> None:
+        """n frames of the plant, 10 ms apart, each answered."""
+        for _ in range(n):
+            self.t = round(self.t + 0.01, 6)
+            with self.plant.batch():
+                for m in frame(self.t):
+                    self.plant.send(m)
+            self.pump()
+
+    def command(self, msg) -> None:
+        self.station.send(msg)
+        self.pump()
+
+    def texts(self) -> dict:
+        """NAMED_VALUE_FLOAT telemetry the station received so far (newest value of each)."""
+        out = {}
+        m = self.station.recv(0.2)
+        while m is not None:
+            if m.get_type() == "NAMED_VALUE_FLOAT":
+                out[m.name] = m.value
+            m = self.station.recv(0.05)
+        return out
+
+    def close(self) -> None:
+        for lk in (self.plant, self.main, self.ground, self.station):
+            lk.close()
+
+
+@pytest.fixture
+def robot():
+    r = Robot()
+    yield r
+    r.close()
+
+
+@pytest.fixture
+def signed_robot():
+    r = Robot(KEY)
+    yield r
+    r.close()
+
+
+def _armed(r: Robot) -> Robot:
+    r.fly(3)
+    r.command(arm_command(True))
+    r.command(depth_yaw_target(0.3, 0.0))
+    r.fly(5)
+    assert r.loop.armed and not r.loop.failsafe_active
+    return r
+
+
+def _healthy_after(r: Robot, steps_before: int) -> None:
+    """The robot flies on: real IMU samples fused, no failsafe, and it can still be re-armed."""
+    ignored = r.loop.stats.ignored_imu
+    r.fly(40)  # 0.4 s: longer than the 0.3 s IMU timeout
+    assert r.loop.stats.ignored_imu == ignored, "real IMU samples dropped as out of order"
+    assert not r.loop.failsafe_active, r.loop.fs_state
+    assert r.loop.stats.steps >= steps_before + 40
+    assert r.loop.clock.now() == pytest.approx(r.t)
+    r.command(arm_command(False))
+    r.command(arm_command(True))
+    assert r.loop.armed
+
+
+# -- item 1: sensor data from the wrong party -----------------------------------------------------------
+
+def test_the_adversarial_runs_packet_on_the_signed_ground_port_changes_nothing(signed_robot):
+    """The issue's case: one unsigned HIGHRES_IMU from system 99, time_usec 1e12, to the ground port
+    of an armed, signing robot. Refused at every layer it reaches; the robot flies on."""
+    r = _armed(signed_robot)
+    steps = r.loop.stats.steps
+    attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        attacker.sendto(wire(hostile_imu(), 99), r.ground.local_address)
+        r.pump()
+    finally:
+        attacker.close()
+    assert r.ground.foreign_datagrams == 1  # the ground link's peer is the station: never read
+    _healthy_after(r, steps)
+
+
+def test_sensor_data_on_the_ground_link_is_refused_and_counted(robot):
+    """Even from the ground link's own peer (a misbehaving station), sensor data is not read."""
+    r = _armed(robot)
+    steps = r.loop.stats.steps
+    r.station.write_raw(wire(hostile_imu(), 99))
+    r.station.write_raw(wire(hostile_imu(), 1))  # claiming to be the autopilot does not help
+    r.station.write_raw(wire(mavlink.MAVLink_system_time_message(0, 10 ** 9), 1))
+    r.pump()
+    _healthy_after(r, steps)
+    assert r.loop.stats.security.sensors_refused == 3
+    assert r.loop.stats.summary()["sensors_refused"] == 3
+    assert r.texts()["sens_ref"] == 3
+
+
+def test_sensor_data_from_another_system_on_the_main_link_is_refused(robot):
+    """A second system behind the plant's address (a router, a companion) is not the autopilot:
+    the autopilot is the first sender of sensor data on the main link (here 1:1)."""
+    r = _armed(robot)
+    steps = r.loop.stats.steps
+    r.plant.write_raw(wire(hostile_imu(), 99))
+    r.plant.write_raw(wire(hostile_imu(), 1, comp=42))  # another component of the autopilot's system
+    r.plant.write_raw(wire(hostile_imu(), 255, comp=190))  # a ground system never supplies sensor data
+    r.pump()
+    _healthy_after(r, steps)
+    assert r.loop.gate.autopilot == (1, 1)
+    assert r.loop.stats.security.sensors_refused == 3
+
+
+def test_a_configured_autopilot_is_the_only_source_of_sensor_data():
+    r = Robot(autopilot=(1, 0))  # system 1, any component
+    try:
+        r.plant.write_raw(wire(hostile_imu(10_000), 7))  # first on the link, but not the one configured
+        r.pump()
+        assert r.loop.clock.now() == float("-inf") and r.loop.stats.security.sensors_refused == 1
+        _armed(r)
+    finally:
+        r.close()
+    with pytest.raises(ValueError, match="autopilot: expected"):
+        Robot(autopilot=(255, 1))
+
+
+def test_with_a_key_sensor_data_must_be_signed_too(signed_robot):
+    """Unsigned or wrongly signed sensor data from the autopilot's own address and ids is refused."""
+    r = _armed(signed_robot)
+    steps = r.loop.stats.steps
+    sec = r.loop.stats.security
+    before = (sec.unsigned, sec.bad_signature)
+    r.plant.write_raw(wire(hostile_imu(), 1))  # unsigned, the autopilot's ids
+    r.plant.write_raw(wire(hostile_imu(), 1, key=hashlib.sha256(b"wrong").digest()))
+    r.pump()
+    assert (sec.unsigned, sec.bad_signature) == (before[0] + 1, before[1] + 1)
+    _healthy_after(r, steps)
+
+
+# -- item 1: a stamp far in the future --------------------------------------------------------------
+
+def test_one_sample_stamped_far_ahead_never_poisons_the_ordering(robot):
+    """From the autopilot itself (a corrupt stamp): held, counted, and the stream flies on. Before,
+    every later real sample was out of order and the IMU failsafe tripped for good."""
+    r = _armed(robot)
+    steps = r.loop.stats.steps
+    r.plant.send(hostile_imu())
+    r.plant.send(mavlink.MAVLink_system_time_message(0, 2 ** 32 - 1))
+    r.pump()
+    _healthy_after(r, steps)
+    assert r.loop.stats.stamps_held == 2
+    assert r.loop.stats.summary()["stamps_held"] == 2
+
+
+def test_a_real_jump_of_the_stream_is_followed_after_three_samples(robot):
+    """A recording with a gap, or a stream that really moved on: three samples agreeing on the new
+    time re-anchor it; a clock that ran ahead (a poisoned first sample) comes back."""
+    r = _armed(robot)
+    r.t = 100.0  # the plant's stream jumps 100 s ahead and stays there
+    r.fly(10)
+    assert r.loop.stats.time_rebases == 1 and r.loop.stats.stamps_held == 2
+    assert r.loop.clock.now() == pytest.approx(r.t)
+    assert not r.loop.failsafe_active
+
+
+def test_a_poisoned_first_sample_is_recovered_from():
+    """The worst case: the first sensor sample ever seen is stamped 11 days ahead. The real stream
+    re-anchors the clock three samples later and the loop steps and arms as usual."""
+    r = Robot()
+    try:
+        r.plant.send(hostile_imu())
+        r.pump()
+        assert r.loop.clock.now() == pytest.approx(FUTURE_US / 1e6)
+        r.fly(5)
+        assert r.loop.clock.now() == pytest.approx(r.t)
+        _armed(r)
+        assert r.loop.stats.time_rebases == 1
+    finally:
+        r.close()
+
+
+def test_stamp_guard_hand_computed():
+    g = StampGuard(max_skew_s=1.0, confirm=3)
+    assert [g.admit(t) for t in (0.0, 0.5, 1.4, 0.5)] == ["ok"] * 4  # within 1 s of the newest (1.4)
+    assert g.admit(1e6) == "held" and g.admit(2.0) == "ok"  # a lone outlier; the stream goes on
+    assert [g.admit(t) for t in (50.0, 50.5, 51.0)] == ["held", "held", "rebased"]
+    assert g.newest == 51.0 and (g.held, g.rebases) == (3, 1)
+    assert [g.admit(t) for t in (5.0, 60.0, 5.1)] == ["held", "held", "held"]  # not consecutive: no rebase
+    assert g.admit(5.2) == "held" and g.admit(5.3) == "rebased" and g.newest == 5.3
+
+
+# -- item 3: garbage on every link is counted -----------------------------------------------------------
+
+def test_garbage_on_the_ground_link_is_counted_and_reported(robot):
+    """link_bad, SYS_STATUS errors_comm and the exit summary covered the main link only."""
+    r = _armed(robot)
+    for junk in (b"\xfd\x09\x00\x00\x00\xff\xbe\x00\x00\x00" + bytes(11), b"\xfe\x05" + bytes(10)):
+        r.station.write_raw(junk)  # framed packets whose CRC fails, from the ground link's peer
+    r.fly(110)  # past the next 1 Hz SYS_STATUS
+    bad = r.ground.bad_packets + r.ground.unknown_packets
+    assert bad >= 2 and r.main.bad_packets + r.main.unknown_packets == 0
+    tm, sys_status = {}, []
+    m = r.station.recv(0.2)
+    while m is not None:
+        if m.get_type() == "NAMED_VALUE_FLOAT":
+            tm[m.name] = m.value
+        elif m.get_type() == "SYS_STATUS":
+            sys_status.append(m.errors_comm)
+        m = r.station.recv(0.05)
+    assert tm["link_bad"] == bad and sys_status[-1] == bad
+
+
+def test_the_exit_summary_names_every_link(robot):
+    from onboard.cli import summary_lines
+
+    r = _armed(robot)
+    r.station.write_raw(b"\xfd\x09\x00\x00\x00\xff\xbe\x00\x00\x00" + bytes(11))
+    r.fly(2)
+    lines = summary_lines("stopped", r.loop, {"link": r.main, "ground": r.ground})
+    link_line = next(x for x in lines if x.startswith("jetloop onboard: link "))
+    ground_line = next(x for x in lines if x.startswith("jetloop onboard: ground "))
+    assert "bad_packets 0" in link_line and "bad_packets 1" in ground_line
+    assert "link errors 1 (link 0, ground 1)" in lines[0]
+
+
+# -- item 11: `onboard --link tlog:` on a file that holds no MAVLink -------------------------------------
+
+@pytest.mark.parametrize("content", [b"", bytes(range(256)) * 40, b"\x00" * 7 + b"\xfd" + bytes(300)],
+                         ids=["empty", "every byte value", "a false start marker"])
+def test_onboard_refuses_a_tlog_that_holds_no_mavlink(tmp_path, capsys, content):
+    """It ran to its idle timeout and exited 0; now one clear line and exit code 2, at once."""
+    from ground.cli import main
+
+    path = tmp_path / "not.tlog"
+    path.write_bytes(content)
+    assert main(["onboard", "--link", f"tlog:{path}", "--lockstep"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"jetloop onboard: link tlog:{path}: ")
+    assert ("the recording is empty" if not content else "no MAVLink packet in its first") in err[0]
+    assert "Traceback" not in err[0]
