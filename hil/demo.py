@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing as mp
+import os
 import queue
 import sys
 import threading
@@ -146,13 +147,35 @@ def tracking_errors(truth, mission: Mission, surface_m: float = 0.0) -> dict:
 # The three parties
 
 
-def _onboard_main(vehicle, link, ground, config, stop, results):
+def _die_with_parent(parent_pid: int | None):
+    """In a forked party: never outlive the parent (issue 15: killing `jetloop demo` left its
+    onboard child flying for good). Linux: the kernel sends SIGTERM when the parent dies
+    (PR_SET_PDEATHSIG; the jetloop commands turn SIGTERM into Ctrl-C); everywhere, the party's
+    own loop also stops once its parent is gone. Returns stop's extra condition."""
+    if parent_pid is None:  # a thread: it dies with its process
+        return lambda: False
+    try:
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass  # not Linux: the check below alone
+    orphaned = lambda: os.getppid() != parent_pid  # noqa: E731
+    if orphaned():  # the parent died before prctl took effect
+        os._exit(1)
+    return orphaned
+
+
+def _onboard_main(vehicle, link, ground, config, stop, results, parent_pid=None):
     """The onboard process: build the loop (compiles on a first run), fly until told to stop.
     Reports the loop's whole stats.summary() (with the fault monitor's faults_seen and
     fault_events) plus the links' counts."""
+    orphaned = _die_with_parent(parent_pid)
     try:
         loop = OnboardLoop(vehicle, link, VehicleClock(), config, ground=ground)
-        loop.run(stop=stop.is_set)
+        loop.run(stop=lambda: stop.is_set() or orphaned())
         summary = loop.stats.summary()
         summary["link"] = link.stats()
         summary["ground_link"] = ground.stats()  # what the telemetry recorder should have got
@@ -164,15 +187,16 @@ def _onboard_main(vehicle, link, ground, config, stop, results):
         results.put(("onboard", {"error": f"{type(exc).__name__}: {exc}"}))
 
 
-def _recorder_main(link, path, stop, results):
+def _recorder_main(link, path, stop, results, parent_pid=None):
     """The ground recorder: every telemetry packet into a .tlog, stamped with vehicle time."""
     from hil.tlog import FIXED_EPOCH_US, TlogWriter
 
+    orphaned = _die_with_parent(parent_pid)
     counts: dict = {}
     t_us = 0
     try:
         with TlogWriter(path) as tlog:
-            while not stop.is_set():
+            while not stop.is_set() and not orphaned():
                 m = link.recv(0.1)
                 while m is not None:
                     name = m.get_type()
@@ -246,9 +270,10 @@ def run_closed_loop(
         stop, results = threading.Event(), queue.Queue()
         start = lambda target, args: threading.Thread(target=target, args=args, daemon=True)  # noqa: E731
     rec_target = telemetry_path if telemetry_path is not None else Path("/dev/null")
+    parent = os.getpid() if use_fork else None
     parties = [
-        start(_recorder_main, (rec_link, rec_target, stop, results)),
-        start(_onboard_main, (vehicle, ob_link, gnd_link, config, stop, results)),
+        start(_recorder_main, (rec_link, rec_target, stop, results, parent)),
+        start(_onboard_main, (vehicle, ob_link, gnd_link, config, stop, results, parent)),
     ]
     for p in parties:
         p.start()
@@ -263,10 +288,11 @@ def run_closed_loop(
     tlog = TlogWriter(tlog_path) if tlog_path is not None else None
     plant = Plant(vehicle, dt_s=0.001, seed=seed, depth_m=depth_m)
     frame_s = frame_period_s if frame_period_s is not None else 1.0 / config.control_rate_hz
+    got: dict = {}
     ep = HilEndpoint(vehicle, ep_link, plant, control_period_s=frame_s, lockstep=True,
                      setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=90.0,
-                     history=history, on_period=on_period)
-    got: dict = {}
+                     history=history, on_period=on_period,
+                     abort=lambda: _party_failure(dict(zip(("recorder", "onboard"), parties)), results, got))
     wall0 = time.perf_counter()
     finished = False
     try:
@@ -315,6 +341,34 @@ def run_closed_loop(
         extra["detections"] = detections(faults, onboard.get("fault_events", []))
     return ClosedLoopResult(ep.truth, ep.commands, endpoint, onboard, got.get("recorder", {}),
                             wall, tlog_path, telemetry_path, extra)
+
+
+def _party_failure(parties: dict, results, got: dict) -> str | None:
+    """Why the flight cannot go on, or None: a party reported an error, or died (a process's exit
+    code, a thread that ended) before it was told to stop. Checked while the plant waits."""
+    def error():
+        while True:
+            try:
+                who, what = results.get_nowait()
+            except queue.Empty:
+                break
+            got[who] = what
+        for name, report in got.items():
+            if isinstance(report, dict) and "error" in report:
+                return f"the {name} failed: {report['error']}"
+        return None
+
+    if error():
+        return error()
+    for name, p in parties.items():
+        if not p.is_alive():
+            _drain(results, got, 1.0, want=(name,))  # its last report may still be on its way
+            if error():
+                return error()
+            code = getattr(p, "exitcode", None)
+            how = ("" if code is None else f" (killed by signal {-code})" if code < 0 else f" (exit code {code})")
+            return f"the {name} {'process' if code is not None else 'thread'} ended before the flight did{how}"
+    return None
 
 
 def _drain(results, got: dict, timeout_s: float, want=()) -> None:

@@ -100,7 +100,10 @@ class HilEndpoint:
         seed: int = 0,
         on_period=None,
         history: bool = True,
+        abort=None,
     ):
+        """`abort()`: None while the controller may still answer, else why it never will (e.g. its
+        process died); checked while waiting for it, so a dead controller fails at once."""
         if actuators not in ("hil", "pwm"):
             raise ValueError(f"actuators must be 'hil' or 'pwm', got {actuators!r}")
         self.vehicle = vehicle
@@ -117,6 +120,7 @@ class HilEndpoint:
         self.reply_timeout_s = reply_timeout_s
         self.give_up_s = give_up_s
         self.on_period = on_period
+        self.abort = abort
         self.k = 0
         self.stats = EndpointStats()
         self._marker_packet = b""  # the last frame marker, re-sent as is when a reply is late
@@ -192,12 +196,18 @@ class HilEndpoint:
         deadline = time.monotonic() + wait_s
         raw = getattr(self.link, "inner", self.link)  # the handshake is not subject to link faults
         while not raw.has_peer:
+            self._check_abort()
             if time.monotonic() > deadline:
                 raise EndpointError(f"no controller spoke on {self.link.connection} within {wait_s:.0f} s")
             m = raw.recv(0.1)
             if m is not None:
                 self._handle(m, self.time_s, record=False)  # the handshake is not the flight
         self._wall0 = time.monotonic()
+
+    def _check_abort(self) -> None:
+        why = self.abort() if self.abort is not None else None
+        if why:
+            raise EndpointError(why)
 
     # -- one control period ----------------------------------------------------------------------
     def step(self) -> None:
@@ -307,6 +317,7 @@ class HilEndpoint:
                 if getattr(self.link, "arrivals", 0) != before:
                     continue  # it came, and the fault injector lost it or holds it back
                 waited += self.reply_timeout_s
+                self._check_abort()
                 if waited >= self.give_up_s:
                     raise EndpointError(
                         f"lock-step: no actuator command for t = {t:.3f} s within {self.give_up_s:.0f} s "

@@ -1,0 +1,83 @@
+"""The demo's parties (hil.demo.run_closed_loop, issue 15 item 4): a child that dies at start fails
+the run at once with its own error, not after the 300 s start timeout; and when the parent is
+killed, its forked children (onboard loop, telemetry recorder) go with it instead of flying on."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hil.demo import hold_mission, run_closed_loop
+from hil.endpoint import EndpointError
+from onboard.loop import LoopConfig
+from onboard.vehicle import load_vehicle
+
+V = load_vehicle()
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_an_onboard_child_that_fails_at_start_fails_the_run_at_once_with_its_error():
+    """OnboardLoop refuses the configuration in the child (ground system 0): the run used to wait
+    for the whole start timeout before saying so."""
+    t0 = time.monotonic()
+    with pytest.raises(EndpointError, match=r"the onboard loop failed to start: .*ground_systems: expected system ids"):
+        run_closed_loop(V, hold_mission(2.0).setpoints(), 2.0, config=LoopConfig(ground_systems=(0,)),
+                        start_timeout_s=60.0)
+    assert time.monotonic() - t0 < 30.0
+
+
+def test_an_onboard_child_killed_at_start_fails_the_run_at_once():
+    t0 = time.monotonic()
+    with pytest.raises(EndpointError, match=r"the onboard process ended before the flight did \(killed by signal 9\)"):
+        run_closed_loop(V, hold_mission(2.0).setpoints(), 2.0, start_timeout_s=60.0,
+                        on_start=lambda pids: os.kill(pids["onboard"], signal.SIGKILL))
+    assert time.monotonic() - t0 < 30.0
+
+
+def _gone(pid: int) -> bool:
+    """The process no longer runs (absent, or a zombie waiting for whoever adopted it)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return True
+    return any(line.startswith("State:") and "Z" in line.split()[1] for line in status.splitlines())
+
+
+SCRIPT = """
+import json, sys
+from hil.demo import hold_mission, run_closed_loop
+from onboard.vehicle import load_vehicle
+run_closed_loop(load_vehicle(), hold_mission(600.0).setpoints(), 600.0,
+                on_start=lambda pids: print(json.dumps(pids), flush=True))
+"""
+
+
+@pytest.mark.parametrize("when", ["while the onboard starts", "in flight"])
+def test_killing_the_parent_leaves_no_orphan(when):
+    proc = subprocess.Popen([sys.executable, "-c", SCRIPT], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    children = {}
+    try:
+        children = json.loads(proc.stdout.readline())
+        assert set(children) == {"onboard", "recorder"}
+        if when == "in flight":
+            time.sleep(5.0)  # the loop starts in ~1 s once compiled (the module's other tests compiled it)
+        proc.kill()  # SIGKILL: the parent runs no clean-up at all
+        proc.wait(10)
+        deadline = time.monotonic() + 15.0
+        while time.monotonic() < deadline and not all(_gone(pid) for pid in children.values()):
+            time.sleep(0.1)
+        alive = {name: pid for name, pid in children.items() if not _gone(pid)}
+        assert not alive, f"orphans still running: {alive}"
+    finally:
+        for pid in children.values():
+            if not _gone(pid):
+                os.kill(pid, signal.SIGKILL)
+        if proc.poll() is None:
+            proc.kill()
