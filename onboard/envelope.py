@@ -5,11 +5,14 @@ before it replaces the setpoint in force; a refused one leaves the previous setp
 Each check returns None (acceptable) or the reason, worded for a 50-character STATUSTEXT:
 "setpoint refused: depth 12.0 m > max 2.0 m".
 
-- SET_POSITION_TARGET_LOCAL_NED (common.xml, POSITION_TARGET_TYPEMASK): only the fields the
-  onboard loop uses (onboard.loop.apply_position_target) are checked: z as a depth in a
-  non-body frame within [min_depth_m, max_depth_m]; the horizontal speed hypot(vx, vy) (a
-  rotation by yaw keeps it, so the frame does not matter) <= max_speed_m_s; |vz| <=
-  max_heave_speed_m_s; |yaw_rate| <= max_yaw_rate_rad_s.
+- SET_POSITION_TARGET_LOCAL_NED (common.xml, POSITION_TARGET_TYPEMASK): the frame must be one
+  the loop reads (MAV_FRAME_LOCAL_NED, or a body frame: BODY_NED, BODY_OFFSET_NED, BODY_FRD);
+  any other (LOCAL_OFFSET_NED's z is an offset, not a depth; a global frame; an unknown number)
+  is refused, never read as NED. Then only the fields the onboard loop uses
+  (onboard.loop.apply_position_target) are checked: z as a depth in a non-body frame within
+  [min_depth_m, max_depth_m]; the horizontal speed hypot(vx, vy) (a rotation by yaw keeps it, so
+  the frame does not matter) <= max_speed_m_s; |vz| <= max_heave_speed_m_s; |yaw| <= 2 pi (a
+  heading, not 3.4e38); |yaw_rate| <= max_yaw_rate_rad_s.
 - MANUAL_CONTROL: the axes' own range in common.xml, x, y, r in -1000..1000 and z in 0..1000
   (ArduSub's 500-neutral heave); the loop scales full stick to the controller's manual speeds.
 - COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM: param1 exactly 0 (disarm) or 1 (arm);
@@ -17,7 +20,7 @@ Each check returns None (acceptable) or the reason, worded for a 50-character ST
   (which modes exist is the loop's check, answered MAV_RESULT_DENIED there).
 
 Non-finite numbers are not this module's business: the loop's decoders refuse and count them
-(`rejected_inputs`), so they pass here unchanged.
+(`rejected_inputs`) and say so in a STATUSTEXT, so they pass here unchanged.
 """
 
 from __future__ import annotations
@@ -31,7 +34,10 @@ IGNORE_Z = mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE
 IGNORE_VX = mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE
 IGNORE_VY = mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
 IGNORE_VZ = mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE
+IGNORE_YAW = mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
 IGNORE_YAW_RATE = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+FRAMES = (mavlink.MAV_FRAME_LOCAL_NED,) + BODY_FRAMES  # the frames apply_position_target reads
+MAX_YAW_RAD = 2 * math.pi
 MANUAL_RANGES = {"x": (-1000, 1000), "y": (-1000, 1000), "z": (0, 1000), "r": (-1000, 1000)}
 
 
@@ -57,6 +63,8 @@ def _num(v) -> str:
 def position_target_violation(env, msg) -> str | None:
     """SET_POSITION_TARGET_LOCAL_NED against the envelope `env`: None, or why it is refused."""
     mask = int(msg.type_mask)
+    if msg.coordinate_frame not in FRAMES:
+        return f"setpoint refused: frame {_num(msg.coordinate_frame)[:8]} not LOCAL_NED or body"
     body = msg.coordinate_frame in BODY_FRAMES
     if not mask & IGNORE_Z and not body and _finite(msg.z):
         depth = float(msg.z)
@@ -73,6 +81,8 @@ def position_target_violation(env, msg) -> str | None:
                 return f"setpoint refused: speed {_f(speed, 2)} > max {env.max_speed_m_s:.2f} m/s"
     if not mask & IGNORE_VZ and _finite(msg.vz) and abs(float(msg.vz)) > env.max_heave_speed_m_s:
         return f"setpoint refused: heave {_f(abs(float(msg.vz)), 2)} > max {env.max_heave_speed_m_s:.2f} m/s"
+    if not mask & IGNORE_YAW and _finite(msg.yaw) and abs(float(msg.yaw)) > MAX_YAW_RAD:
+        return f"setpoint refused: |yaw| {_f(abs(float(msg.yaw)), 2)} > {MAX_YAW_RAD:.2f} rad"
     if not mask & IGNORE_YAW_RATE and _finite(msg.yaw_rate) and abs(float(msg.yaw_rate)) > env.max_yaw_rate_rad_s:
         return f"setpoint refused: yaw rate {_f(abs(float(msg.yaw_rate)), 2)} > max {env.max_yaw_rate_rad_s:.2f} rad/s"
     return None

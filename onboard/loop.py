@@ -214,9 +214,14 @@ def apply_position_target(sp: Setpoint, msg, yaw_estimate_rad: float) -> Setpoin
     vz (with z ignored) a heave velocity. A position target ends joystick control.
     """
     mask = int(msg.type_mask)
-    if not all(math.isfinite(float(x)) for x in (msg.z, msg.vx, msg.vy, msg.vz, msg.yaw)):
-        raise CodecError("SET_POSITION_TARGET_LOCAL_NED has a non-finite field")
+    if msg.coordinate_frame not in (mavlink.MAV_FRAME_LOCAL_NED,) + BODY_FRAMES:  # never read another as NED
+        raise CodecError(f"setpoint refused: frame {msg.coordinate_frame} unsupported")
     body = msg.coordinate_frame in BODY_FRAMES
+    used = {"z": not mask & IGNORE_Z, "vx": not mask & IGNORE_VX, "vy": not mask & IGNORE_VY,
+            "vz": not mask & IGNORE_VZ, "yaw": not mask & IGNORE_YAW}
+    for name, read in used.items():  # an ignored field may be anything (senders often put NaN there)
+        if read and not math.isfinite(float(getattr(msg, name))):
+            raise CodecError(f"setpoint refused: {name} {float(getattr(msg, name))} not finite")
     depth, yaw = sp.depth_m, sp.yaw_rad
     u, v, w = sp.velocity_body_m_s
     if not mask & IGNORE_Z and not body:
@@ -237,9 +242,9 @@ def apply_position_target(sp: Setpoint, msg, yaw_estimate_rad: float) -> Setpoin
 
 def manual_axes(msg) -> ManualAxes:
     """MANUAL_CONTROL (+-1000; z 0..1000 with 500 neutral, up above 500, as ArduSub) -> stick axes."""
-    vals = (msg.x, msg.y, msg.z, msg.r)
-    if not all(math.isfinite(float(x)) for x in vals):
-        raise CodecError("MANUAL_CONTROL has a non-finite axis")
+    for name in ("x", "y", "z", "r"):
+        if not math.isfinite(float(getattr(msg, name))):
+            raise CodecError(f"setpoint refused: manual {name} {float(getattr(msg, name))} not finite")
     return ManualAxes(surge=msg.x / 1000.0, sway=msg.y / 1000.0, heave_down=(500.0 - msg.z) / 500.0,
                       yaw_right=msg.r / 1000.0)
 
@@ -648,10 +653,14 @@ class OnboardLoop:
             elif name == "ACTUATOR_OUTPUT_STATUS":  # smart servos' angles: stuck joints
                 t, alpha, beta = codec.decode_joint_angles(m, self.k)
                 mon.joints(t, alpha, beta)
-        except (CodecError, ValueError, TypeError, AttributeError, OverflowError):
+        except (CodecError, ValueError, TypeError, AttributeError, OverflowError) as exc:
             self.stats.rejected_inputs += 1
             if mon is not None and name in IMU_RANK:
                 mon.imu_invalid(self.clock.now())  # an IMU reading NaN / inf
+            if name in ("SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL"):  # the ground hears why
+                why = str(exc) if str(exc).startswith("setpoint refused") else f"setpoint refused: {name[:20]} malformed"
+                for reply in self.gate.refusal_text(why):  # rate-limited with the envelope's refusals
+                    (self.ground or self.link).send(reply)
 
     def _stamp_ok(self, t: float) -> bool:
         """Whether a sensor sample stamped t may count (StampGuard); follows a confirmed new time base."""

@@ -325,7 +325,7 @@ class CommandGate:
                     self.counts.commands_denied += 1
                     ack = mavlink.MAVLink_command_ack_message(int(msg.command), mavlink.MAV_RESULT_DENIED, 0, 0,
                                                               msg.get_srcSystem(), msg.get_srcComponent())
-                    return Verdict(False, why, (ack,) + self._text(why))
+                    return Verdict(False, why, (ack,) + self.refusal_text(why))
             elif name == "SET_POSITION_TARGET_LOCAL_NED":
                 why = env.position_target_violation(self.envelope, msg)
             elif name == "MANUAL_CONTROL":
@@ -336,7 +336,7 @@ class CommandGate:
             return ACCEPT  # malformed: the loop's decoder refuses and counts it (rejected_inputs)
         if why is not None:
             self.counts.setpoints_refused += 1
-            return Verdict(False, why, self._text(why))
+            return Verdict(False, why, self.refusal_text(why))
         return ACCEPT
 
     def _sensor(self, msg, link: str) -> Verdict:
@@ -356,7 +356,7 @@ class CommandGate:
         self.counts.sensors_refused += 1
         return Verdict(False, why)
 
-    def _text(self, why: str) -> tuple:
+    def refusal_text(self, why: str) -> tuple:
         """A STATUSTEXT warning saying why, at most one per REFUSAL_TEXT_PERIOD_S (a flood of bad
         setpoints must not become a flood of replies; the counters still count every one)."""
         now = self.clock()

@@ -19,9 +19,9 @@ ENV = Envelope(max_depth_m=2.0, min_depth_m=0.0, max_speed_m_s=1.0, max_heave_sp
 M = mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE | 0b111000000
 
 
-def _target(frame=mavlink.MAV_FRAME_LOCAL_NED, mask=0, z=0.0, vx=0.0, vy=0.0, vz=0.0, yaw_rate=0.0):
+def _target(frame=mavlink.MAV_FRAME_LOCAL_NED, mask=0, z=0.0, vx=0.0, vy=0.0, vz=0.0, yaw_rate=0.0, yaw=0.0):
     return mavlink.MAVLink_set_position_target_local_ned_message(0, 1, 1, frame, M | mask, 0, 0, z, vx, vy, vz,
-                                                                 0, 0, 0, 0, yaw_rate)
+                                                                 0, 0, 0, yaw, yaw_rate)
 
 
 # -- the vehicle file --------------------------------------------------------------------------------
@@ -108,8 +108,31 @@ def test_non_finite_fields_are_left_to_the_decoder():
     assert position_target_violation(ENV, _target(vx=float("nan"))) is None
 
 
+def test_a_yaw_beyond_a_turn_is_refused():
+    """Issue 15: yaw 3.4e38 was accepted as a heading. Within +-2 pi (0..2 pi and -pi..pi senders) passes."""
+    assert position_target_violation(ENV, depth_yaw_target(None, 2 * math.pi)) is None
+    assert position_target_violation(ENV, depth_yaw_target(None, -3.0)) is None
+    assert position_target_violation(ENV, depth_yaw_target(None, 3.4e38)) == \
+        "setpoint refused: |yaw| 3.4e+38 > 6.28 rad"
+    assert position_target_violation(ENV, depth_yaw_target(0.5, 7.0)) == "setpoint refused: |yaw| 7.00 > 6.28 rad"
+    assert position_target_violation(ENV, _target(mask=mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE, yaw=1e9)) is None
+
+
+@pytest.mark.parametrize("frame", [mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_GLOBAL,
+                                   mavlink.MAV_FRAME_LOCAL_FRD, 200])
+def test_a_frame_the_loop_does_not_read_is_refused_not_taken_as_ned(frame):
+    """Issue 15: an unknown coordinate_frame was read as NED (z a depth). LOCAL_OFFSET_NED's z is an
+    offset from where the vehicle is, a global frame's z an altitude: refused, and said so."""
+    assert position_target_violation(ENV, _target(frame, z=0.5)) == \
+        f"setpoint refused: frame {frame} not LOCAL_NED or body"
+    for ok in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED,
+               mavlink.MAV_FRAME_BODY_FRD):
+        assert position_target_violation(ENV, _target(ok, z=0.5)) is None
+
+
 def test_every_refusal_text_fits_a_statustext():
-    worst = [depth_yaw_target(-123456.0), body_velocity_target(1e6, 1e6), _target(vz=-1e6), _target(yaw_rate=1e6)]
+    worst = [depth_yaw_target(-123456.0), body_velocity_target(1e6, 1e6), _target(vz=-1e6), _target(yaw_rate=1e6),
+             depth_yaw_target(None, -3.4e38), _target(255)]
     for m in worst:
         assert len(position_target_violation(ENV, m)) <= 50
 

@@ -27,7 +27,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from conftest import free_udp_port
 from ground.commands import depth_yaw, manual, set_mode, velocity
 from onboard.link import Link
-from onboard.loop import LoopConfig, OnboardLoop, WallClock
+from onboard.loop import LoopConfig, OnboardLoop, WallClock, depth_yaw_target
 from onboard.signing import MAX_STREAMS, NEW_STREAM_MAX_AGE, SigningState, enable_signing, signing_timestamp
 from onboard.vehicle import load_vehicle
 
@@ -488,3 +488,33 @@ def test_onboard_hil_and_ground_processes_hold_only_their_configured_sockets_on_
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.communicate()
+
+
+# -- setpoints the loop cannot fly are refused aloud (issue 15 item 11) ------------------------------------
+
+def test_non_finite_absurd_or_unknown_frame_setpoints_are_refused_with_a_statustext(open_robot):
+    """NaN setpoints were dropped without a word; yaw 3.4e38 was flown as a heading; a frame the loop
+    does not know was read as NED. Each is refused, the previous setpoint stays, and the ground is
+    told why (one STATUSTEXT per 0.2 s at most, as every refusal)."""
+    r = open_robot
+    r.send(packet(depth_yaw(0.5, 0.25)))
+    r.replies(0.05)
+    nan = float("nan")
+    frame7 = depth_yaw(1.0)
+    frame7.coordinate_frame = mavlink.MAV_FRAME_LOCAL_OFFSET_NED
+    cases = [(depth_yaw_target(nan), "setpoint refused: z nan not finite"),
+             (depth_yaw_target(None, float("inf")), "setpoint refused: yaw inf not finite"),
+             (depth_yaw_target(None, 3.4e38), "setpoint refused: |yaw| 3.4e+38 > 6.28 rad"),
+             (frame7, "setpoint refused: frame 7 not LOCAL_NED or body")]
+    for msg, text in cases:
+        time.sleep(0.21)  # past the refusal texts' rate limit
+        r.send(packet(msg))
+        assert [m.text for m in r.replies() if m.get_type() == "STATUSTEXT"] == [text]
+        assert (r.loop.setpoint.depth_m, r.loop.setpoint.yaw_rad) == (0.5, 0.25)
+    s = r.loop.stats.summary()
+    assert (s["rejected_inputs"], s["setpoints_refused"]) == (2, 2)  # non-finite: malformed; the rest: refused
+    # a NaN in a field the type_mask ignores is not read (senders put NaN there): obeyed
+    m = depth_yaw(0.75)  # yaw ignored
+    m.yaw = nan
+    r.send(packet(m))
+    assert r.loop.setpoint.depth_m == 0.75
