@@ -38,6 +38,9 @@ def configure(parser) -> None:
     parser.add_argument("--mission", choices=("none", "demo"), default="none",
                         help="inject the demo mission's ground setpoints (arm, dive, yaw, forward, surface)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s of vehicle time")
+    parser.add_argument("--key", default=None, metavar="KEYFILE",
+                        help="sign everything sent with this MAVLink 2 key (32 raw bytes or 64 hex digits), as an "
+                             "autopilot with signing does: for `jetloop onboard --key`, which refuses unsigned input")
     parser.add_argument("--wait", type=float, default=300.0, metavar="S",
                         help="how long to wait for a controller, and in lock-step for each answer (default 300 s)")
     from hil.faults import add_fault_arguments
@@ -49,9 +52,12 @@ def run(args) -> int:
     from onboard.link import Link, LinkError
     from onboard.vehicle import VehicleFileError, load_vehicle
 
+    from onboard.signing import SigningError, load_key
+
     try:
         vehicle = load_vehicle(args.vehicle)
-    except VehicleFileError as exc:
+        key = load_key(args.key) if getattr(args, "key", None) else None
+    except (VehicleFileError, SigningError) as exc:
         print(f"jetloop hil: {exc}", file=sys.stderr)
         return 2
     from hil.faults import FaultPlanError, plan_from_args
@@ -62,8 +68,9 @@ def run(args) -> int:
         print(f"jetloop hil: {exc}", file=sys.stderr)
         return 2
     if args.json_sitl:
-        if not faults.empty:
-            print("jetloop hil: fault injection works on the MAVLink endpoint, not with --json-sitl", file=sys.stderr)
+        if not faults.empty or key is not None:
+            print("jetloop hil: fault injection and --key work on the MAVLink endpoint, not with --json-sitl",
+                  file=sys.stderr)
             return 2
         return _json_sitl(args, vehicle)
     from hil.endpoint import EndpointError, HilEndpoint
@@ -93,7 +100,8 @@ def run(args) -> int:
     plant = Plant(vehicle, seed=args.seed, depth_m=args.depth)
     ep = HilEndpoint(vehicle, link, plant, control_period_s=1.0 / rate, lockstep=not args.realtime,
                      actuators=args.actuators, setpoints=setpoints, tlog=tlog, seed=args.seed, history=False,
-                     faults=faults, give_up_s=max(args.wait, 10.0))  # a controller's first step may compile
+                     faults=faults, give_up_s=max(args.wait, 10.0),  # a controller's first step may compile
+                     signing_key=key)
     print(f"jetloop hil: {vehicle.name} on {conn}, {'real time' if args.realtime else 'lock-step'}, "
           f"{rate:g} Hz; waiting for a controller", flush=True)
     if not faults.empty:

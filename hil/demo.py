@@ -291,7 +291,7 @@ def run_closed_loop(
     got: dict = {}
     ep = HilEndpoint(vehicle, ep_link, plant, control_period_s=frame_s, lockstep=True,
                      setpoints=setpoints, faults=faults, tlog=tlog, seed=seed, give_up_s=90.0,
-                     history=history, on_period=on_period,
+                     history=history, on_period=on_period, signing_key=config.signing_key,
                      abort=lambda: _party_failure(dict(zip(("recorder", "onboard"), parties)), results, got))
     wall0 = time.perf_counter()
     finished = False

@@ -101,9 +101,12 @@ class HilEndpoint:
         on_period=None,
         history: bool = True,
         abort=None,
+        signing_key: bytes | None = None,
     ):
         """`abort()`: None while the controller may still answer, else why it never will (e.g. its
-        process died); checked while waiting for it, so a dead controller fails at once."""
+        process died); checked while waiting for it, so a dead controller fails at once.
+        `signing_key`: sign everything sent (sensors and the injected ground setpoints), as an
+        autopilot with MAVLink 2 signing does; a robot with that key refuses anything unsigned."""
         if actuators not in ("hil", "pwm"):
             raise ValueError(f"actuators must be 'hil' or 'pwm', got {actuators!r}")
         self.vehicle = vehicle
@@ -143,6 +146,13 @@ class HilEndpoint:
         self._next_joints_s = 0.0
         self._arrived_us = -1  # lock-step: newest command stamp that reached the fault injector
         self._injector = codec.make_mavlink(INJECTOR_SYSTEM, INJECTOR_COMPONENT)
+        self._signing = []  # the packers that sign (their timestamps follow the clock each frame)
+        if signing_key is not None:
+            from onboard.signing import enable_signing
+
+            self._signing = [getattr(link, "inner", link).mav, self._gcs]
+            for i, mav in enumerate(self._signing):
+                enable_signing(mav, signing_key, link_id=i)
         self._marks = injection_events(faults)
         self._actuator_faults = bool(faults.jets or faults.stuck_joints)
         self._rho_g = (vehicle.environment.rho, vehicle.environment.g)
@@ -238,6 +248,11 @@ class HilEndpoint:
             self.step()
 
     def _emit(self, t: float, samples) -> None:
+        if self._signing:  # pymavlink adds 10 us per packet: keep the signing time on the clock
+            from onboard.signing import refresh_timestamp
+
+            for mav in self._signing:
+                refresh_timestamp(mav)
         while self._marks and self._marks[0][0] <= t + 1e-9:
             self._mark(self._marks.pop(0)[1], t)
         if t + 1e-9 >= self._next_heartbeat_s:

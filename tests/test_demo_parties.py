@@ -81,3 +81,28 @@ def test_killing_the_parent_leaves_no_orphan(when):
                 os.kill(pid, signal.SIGKILL)
         if proc.poll() is None:
             proc.kill()
+
+
+def test_a_signed_flight_hil_and_onboard_with_the_same_key():
+    """With a key the onboard loop refuses every unsigned message, sensor data included (issue 15
+    item 1): the plant signs what it sends (HilEndpoint signing_key, `jetloop hil --key`), the
+    injected ground setpoints too, and the closed loop flies as without signing."""
+    import hashlib
+
+    key = hashlib.sha256(b"signed hil").digest()
+    r = run_closed_loop(V, hold_mission(3.0).setpoints(), 3.0, config=LoopConfig(signing_key=key))
+    assert r.endpoint["commands_applied"] == r.endpoint["periods"] == 300
+    ob = r.onboard
+    assert (ob["sig_unsigned"], ob["sig_bad"], ob["sig_replayed"], ob["sensors_refused"]) == (0, 0, 0, 0)
+    assert ob["sig_accepted"] > 1000 and ob["failsafe_entries"] == 0
+    assert r.truth[-1].pos_ned_m[2] > 0.1  # armed by the signed command, diving towards 0.5 m
+
+
+def test_jetloop_hil_key_file_errors_are_one_line(tmp_path, capsys):
+    from ground.cli import main
+
+    bad = tmp_path / "bad.key"
+    bad.write_bytes(b"abc")
+    assert main(["hil", "--key", str(bad), "--link", "udpin:127.0.0.1:0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"jetloop hil: key file {bad}: expected 32 raw bytes or 64 hex digits, got 3 bytes"]
