@@ -31,6 +31,7 @@ ArduSub units: SCALED_IMU / SCALED_IMU2 / RAW_IMU carry accel in mG and gyro in 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import struct
 from dataclasses import dataclass, field
@@ -310,11 +311,12 @@ def _timestamp(buf, p):
 
 @njit(cache=True)
 def _ts_plausible(ts, last_ts):
-    """A tlog stamp within [last - 1 h, last + 1 day] of the last trusted one (any, before the first)."""
+    """A tlog stamp within [last - 1 min, last + 1 h] of the last trusted one (none before the
+    first). A longer real jump of the logger's clock is taken when two packets agree on it."""
     if last_ts == np.uint64(0):
         return False
-    lo = last_ts - np.uint64(3600_000_000) if last_ts > np.uint64(3600_000_000) else np.uint64(0)
-    return lo <= ts <= last_ts + np.uint64(86_400_000_000)
+    lo = last_ts - np.uint64(60_000_000) if last_ts > np.uint64(60_000_000) else np.uint64(0)
+    return lo <= ts <= last_ts + np.uint64(3600_000_000)
 
 
 @njit(cache=True)
@@ -352,8 +354,9 @@ def _scan_tlog(buf, ids, extra):
     byte position holding a packet with a good CRC is where reading resumes, so a packet whose
     own bytes are intact is never lost to damage before it. The tlog stamp is a plausibility
     check only: a stamp out of line with the last trusted one (a flipped bit) is not trusted
-    and the packet gets the last trusted stamp; two consecutive packets agreeing on a new time
-    (a real jump of the logger's clock) make it the trusted one.
+    for resynchronisation; two consecutive packets agreeing on a time (the first two, or a real
+    jump of the logger's clock) make it the trusted one. The stamps returned are the raw ones
+    (`_clean_stamps` mends them).
     """
     n = buf.shape[0]
     cap = n // 16 + 16
@@ -416,15 +419,14 @@ def _scan_tlog(buf, ids, extra):
             p += 8 + total
             continue
         ts = _timestamp(buf, p)
-        if last_ts == np.uint64(0) or _ts_plausible(ts, last_ts):
+        if _ts_plausible(ts, last_ts):
             last_ts = ts
             cand = np.uint64(0)
-        elif cand != np.uint64(0) and _ts_plausible(ts, cand):
-            last_ts = ts  # the logger's clock really jumped: two packets agree
+        elif _ts_plausible(ts, cand):
+            last_ts = ts  # two packets in a row agree: the first stamp, or a real jump of the clock
             cand = np.uint64(0)
         else:
-            cand = ts
-            ts = last_ts
+            cand = ts  # not trusted until the next packet agrees (stamps are cleaned after the scan)
         off[m] = poff
         plen_a[m] = plen
         mid[m] = msgid
@@ -487,7 +489,58 @@ def scan_packets(data: bytes):
     (buf, payload offsets, payload lengths, message ids, sys*256+comp, log stamps in us)."""
     buf = np.frombuffer(data, dtype=np.uint8)
     off, plen, mid, src, ts, *_ = _scan_tlog(buf, *_crc_table())
-    return buf, off, plen, mid, src, ts
+    return buf, off, plen, mid, src, _clean_stamps(ts)
+
+
+def _clean_stamps(ts: np.ndarray) -> np.ndarray:
+    """tlog stamps (us) with the damaged ones mended: a run of at most 4 packets whose stamps
+    jump away (> 1 min) from the stamps before it while the stamps after it carry on from those
+    before (a flipped bit, which no CRC sees) takes the stamp of the packet before it (after
+    it, at the start of the file). A real jump of the logger's clock goes on after the jump and
+    is kept."""
+    ts = np.asarray(ts, dtype=np.uint64)
+    n = len(ts)
+    if n < 2:
+        return ts
+    t = ts.astype(np.float64) / 1e6
+    brk = np.nonzero(np.abs(np.diff(t)) > 60.0)[0]
+    if not len(brk):
+        return ts
+    starts = np.concatenate([[0], brk + 1])
+    ends = np.concatenate([brk + 1, [n]])
+    lens = ends - starts
+    first, last = t[starts], t[ends - 1]
+    runs = len(starts)
+
+    def in_line(x, ref):  # a stamp that can follow `ref`: at most 1 min back, 1 h ahead
+        return -60.0 <= x - ref <= 3600.0
+
+    bad = np.zeros(runs, dtype=bool)
+    prev_end = None  # the last stamp of the last run kept
+    for r in range(runs):
+        if lens[r] <= 4:
+            if prev_end is not None:
+                if not in_line(first[r], prev_end):
+                    nxt = r + 1  # the next run that vouches for the past: long, or in line with it
+                    while nxt < min(runs, r + 64) and lens[nxt] <= 4 and not in_line(first[nxt], prev_end):
+                        nxt += 1
+                    # a real jump goes on: some run up to that one carries on from this one
+                    goes_on = any(abs(first[j] - last[r]) <= 60.0 for j in range(r + 1, min(nxt + 1, runs)))
+                    bad[r] = not goes_on and (nxt == runs or in_line(first[nxt], prev_end))
+            elif r + 1 < runs:  # at the start: the next run, if longer, says what the time is
+                bad[r] = lens[r + 1] > lens[r]
+        if not bad[r]:
+            prev_end = last[r]
+    if not bad.any():
+        return ts
+    mask = np.repeat(bad, lens)
+    good = np.nonzero(~mask)[0]
+    if not len(good):
+        return ts
+    out = ts.copy()
+    pick = np.searchsorted(good, np.nonzero(mask)[0], side="right") - 1
+    out[mask] = ts[good[np.maximum(pick, 0)]]
+    return out
 
 
 def decode_message(buf, off, plen, mid, name: str):
@@ -506,14 +559,16 @@ WANTED = ("HEARTBEAT", "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "S
 
 
 def _log_clock_offset(decoded, ts, use, mid, name_to_id):
-    """Median (logger time - vehicle time) in s over a stream that carries vehicle time, or None."""
+    """Median (logger time - vehicle time) in s over every stream that carries a vehicle time
+    that does not wrap within hours, or None (pooled: a stamp with a flipped bit is outvoted)."""
+    diffs = []
     for name, clock, scale in (("HIGHRES_IMU", "time_usec", 1e-6), ("SCALED_PRESSURE2", "time_boot_ms", 1e-3),
                                ("ATTITUDE", "time_boot_ms", 1e-3), ("SCALED_IMU2", "time_boot_ms", 1e-3)):
         if name in decoded and len(decoded[name]):
             t_log = ts[use & (mid == name_to_id[name])].astype(np.float64) / 1e6
             t_vehicle = np.asarray(decoded[name][clock], np.float64) * scale
-            return float(np.median(t_log - t_vehicle))
-    return None
+            diffs.append(t_log - t_vehicle)
+    return float(np.median(np.concatenate(diffs))) if diffs else None
 
 
 def _read_tlog(path: Path, data: bytes) -> Recording:
@@ -521,6 +576,7 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
     buf = np.frombuffer(data, dtype=np.uint8)
     ids, extra = _crc_table()
     off, plen, mid, src, ts, bad_crc, unknown, skipped, truncated = _scan_tlog(buf, ids, extra)
+    ts = _clean_stamps(ts)
     if len(off) == 0:
         raise RecordingError(
             f"{path}: no MAVLink packet with a good CRC found; expected a .tlog "
@@ -544,10 +600,6 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
         p_pa = np.asarray(a["press_abs"], float) * 100.0
         t, keep = _monotonic(a["time_boot_ms"] / 1e3, "pressure", tally, _press_valid(p_pa))
         pressure = PressureStream(_frozen(t), _frozen(p_pa[keep]), "SCALED_PRESSURE2")
-    servo = None
-    if "SERVO_OUTPUT_RAW" in decoded:
-        t_log = ts[use & (mid == name_to_id["SERVO_OUTPUT_RAW"])].astype(np.float64) / 1e6
-        servo = _servo_from_tlog(decoded["SERVO_OUTPUT_RAW"], t_log, offset, tally)
     attitude = None
     if "ATTITUDE" in decoded:
         a = decoded["ATTITUDE"]
@@ -555,6 +607,12 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
         r = np.column_stack([a["rollspeed"], a["pitchspeed"], a["yawspeed"]]).astype(float)
         t, keep = _monotonic(a["time_boot_ms"] / 1e3, "attitude", tally, _attitude_valid(e, r))
         attitude = AttitudeStream(_frozen(t), _frozen(e[keep]), _frozen(r[keep]))
+    servo = None
+    if "SERVO_OUTPUT_RAW" in decoded:
+        t_log = ts[use & (mid == name_to_id["SERVO_OUTPUT_RAW"])].astype(np.float64) / 1e6
+        ref = [s.time_s for s in (imu, pressure, attitude) if s is not None and len(s.time_s)]
+        span = (min(float(x[0]) for x in ref), max(float(x[-1]) for x in ref)) if ref else None
+        servo = _servo_from_tlog(decoded["SERVO_OUTPUT_RAW"], t_log, offset, span, tally)
     esc = None
     if "ESC_STATUS" in decoded:
         a = decoded["ESC_STATUS"]
@@ -614,22 +672,48 @@ def _unwrap_us(t_us) -> np.ndarray:
 WRAP_S = 2.0 ** 32 / 1e6  # a uint32 microsecond clock's period: 4294.967296 s (71.6 min)
 
 
-def _align_wrapped(t_s, t_log_s, offset_s):
-    """A uint32-us stream whose whole wraps before the log began are unknown (a vehicle up for
-    more than 71.6 min): add the whole periods that put it on the vehicle clock of the other
-    streams, through the logger clock (`offset_s`, logger - vehicle, from a stream that does
-    not wrap). Without a reference, or if the logger clock disagrees by more than a quarter
-    period, it is left as it is."""
-    if offset_s is None or not len(t_s):
+def _align_wrapped(t_s, t_log_s, offset_s, span=None):
+    """A uint32-us stream whose whole wraps before the log began, or during a gap in it, are
+    unknown (a vehicle up for more than 71.6 min, a log that stops for hours): each stretch
+    between jumps gets the whole periods that put it on the vehicle clock of the other streams,
+    through the logger clock (`offset_s`, logger - vehicle, from a stream that does not wrap).
+    The stretch must land within `span` (first, last vehicle time of the streams that do not
+    wrap) when there is one: if the logger's stamps there are damaged, the one whole number of
+    periods that puts it inside the span is taken, or none. Without a reference, or where the
+    logger clock disagrees by more than a quarter period, a stretch is left as it is."""
+    if (offset_s is None and span is None) or not len(t_s):
         return t_s
-    ok = np.isfinite(t_s)
-    if not ok.any():
-        return t_s
-    behind = float(np.median((t_log_s - t_s)[ok])) - offset_s  # >= 0: whole wraps missed
-    k = round(behind / WRAP_S)
-    if k <= 0 or abs(behind - k * WRAP_S) > WRAP_S / 4:
-        return t_s
-    return t_s + k * WRAP_S
+    t = np.array(t_s, dtype=float)
+    behind = (np.asarray(t_log_s, float) - (offset_s if offset_s is not None else np.nan)) - t
+    jumps = np.abs(np.diff(t)) > 1.0  # the stream's own clock (CRC-protected), not the logger's stamps
+    cuts = np.concatenate([[0], np.nonzero(jumps)[0] + 1, [len(t)]])
+    margin = 60.0
+
+    def inside(k, a, b):
+        return span is None or (t[a] + k * WRAP_S >= span[0] - margin and t[b - 1] + k * WRAP_S <= span[1] + margin)
+
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if not np.isfinite(t[a]) or not np.isfinite(t[b - 1]):
+            continue
+        piece = behind[a:b]
+        piece = piece[np.isfinite(piece)]
+        k = None
+        if len(piece):  # the whole number of periods most samples agree on (damaged stamps outvoted)
+            ks = np.round(piece / WRAP_S)
+            near = np.abs(piece - ks * WRAP_S) <= WRAP_S / 4
+            if near.any():
+                vals, counts = np.unique(ks[near], return_counts=True)
+                if counts.max() * 2 > len(piece):
+                    k = int(vals[np.argmax(counts)])
+            if k is not None and not inside(k, a, b):
+                k = None
+        if k is None and span is not None:  # the logger cannot tell: the span may
+            k_lo = math.ceil((span[0] - margin - t[a]) / WRAP_S)
+            k_hi = math.floor((span[1] + margin - t[b - 1]) / WRAP_S)
+            k = k_lo if k_lo == k_hi else None
+        if k and t[a] + k * WRAP_S >= 0:
+            t[a:b] += k * WRAP_S
+    return t
 
 
 class _Tally:
@@ -754,14 +838,14 @@ def _imu_from_tlog(decoded: dict, tally: _Tally) -> ImuStream | None:
     return None
 
 
-def _servo_from_tlog(a, t_log_s, offset_s, tally: _Tally) -> ServoStream:
+def _servo_from_tlog(a, t_log_s, offset_s, span, tally: _Tally) -> ServoStream:
     # port 0 carries channels 1-16 (9-16 in the MAVLink 2 extension fields); other ports are
     # further banks of 8 that ArduSub does not use.
     if (a["port"] == 0).any():
         t_log_s = t_log_s[a["port"] == 0]
         a = a[a["port"] == 0]
     # time_usec is uint32: unwrapped within the log, then put on the other streams' clock
-    t = _align_wrapped(_unwrap_us(a["time_usec"]) / 1e6, t_log_s, offset_s)
+    t = _align_wrapped(_unwrap_us(a["time_usec"]) / 1e6, t_log_s, offset_s, span)
     t, keep = _monotonic(t, "servo", tally)
     pwm = np.column_stack([a[f"servo{c}_raw"] for c in range(1, 17)]).astype(float)[keep]
     return ServoStream(_frozen(t), _frozen(pwm))

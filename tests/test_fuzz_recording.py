@@ -1,11 +1,14 @@
 """Fuzzing ground.recording's .tlog and dataflash .bin readers (issue 7 part 2) on real recordings:
 a short `jetloop sim` tlog, the ArduSub BlueROV2 tlog and dataflash log (shared/data/ardusub),
 truncated, bit-flipped, byte-overwritten, spliced, duplicated, zero-length, and with huge jumps in
-the tlog's timestamps. Properties:
+the tlog's timestamps; and synthetic flights with bit flips in a fraction of the bytes, vehicle-time
+gaps and SERVO_OUTPUT_RAW uint32 clock wraps, whose truth is known. Properties:
 - read_recording returns a Recording or raises RecordingError with a message naming the file;
   never another exception, never longer than the example's deadline;
 - what was skipped is counted: a tlog read from damaged bytes accounts for every byte (the good
   packets' bytes + skipped_bytes + unknown packets' bytes = the file), and streams stay time-ordered;
+- every packet whose own bytes are intact is read, whatever damage precedes it; no sample lands
+  outside the true vehicle-time span; a gap > 1 s splits the recording into segments;
 - 20 MB-scale garbage: memory stays proportional to the file (tracemalloc), time linear.
 """
 
@@ -126,6 +129,76 @@ def test_damaged_tlog_is_read_as_far_as_it_is_sound(tmp_path, ops, source):
     rec = _read(tmp_path, "damaged.tlog", data)
     if rec is not None:
         _tlog_accounting(data, rec)
+
+
+# -- bit flips, gaps and clock wraps on a log whose truth is known (issue 15 items 5-9) -------------
+
+def _flight(n: int, gap_at: float, gap_s: float, uptime_s: float) -> tuple[bytes, float]:
+    """A tlog of n IMU samples at 100 Hz (+ pressure, servo every 2nd), vehicle time starting at
+    uptime_s, jumping by gap_s at fraction gap_at; SERVO_OUTPUT_RAW's time_usec is uint32 and
+    wraps as ArduSub's does. Returns the bytes and the vehicle-time span (first, last)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    link = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    out = bytearray()
+    times = []
+    for i in range(n):
+        t = uptime_s + i * 0.01 + (gap_s if i >= int(gap_at * n) else 0.0)
+        times.append(t)
+        stamp = (1_700_000_000_000_000 + int(round(t * 1e6))).to_bytes(8, "big")
+        msgs = [mav.MAVLink_highres_imu_message(int(round(t * 1e6)), 0.1, 0.2, -9.8, 0.01, 0.02, 0.03,
+                                                0, 0, 0, 0, 0, 0, 0, 0b111111, 0)]
+        if i % 2 == 0:
+            msgs.append(mav.MAVLink_scaled_pressure2_message(int(round(t * 1e3)) % 2 ** 32, 1013.25 + i * 1e-3, 0, 2000, 0))
+            msgs.append(mav.MAVLink_servo_output_raw_message(int(round(t * 1e6)) % 2 ** 32, 0, *([1500] * 16)))
+        for m in msgs:
+            out += stamp + m.pack(link)
+    return bytes(out), (times[0], times[-1])
+
+
+FLIGHT = st.tuples(st.integers(50, 400), st.floats(0.1, 0.9), st.sampled_from([0.0, 0.5, 2.0, 1e5, 4e6]),
+                   st.sampled_from([0.0, 4290.0, 4294.9, 9000.0]), st.sampled_from([0.0, 0.001, 0.01, 0.03]),
+                   st.integers(0, 2 ** 32 - 1))
+
+
+@FUZZ
+@given(flight=FLIGHT)
+@example(flight=(300, 0.5, 1e5, 4294.9, 0.01, 15))  # a gap, a wrap and 1 % bit flips at once
+def test_bit_flips_gaps_and_wraps_keep_every_intact_packet_and_the_true_clock(tmp_path, flight):
+    """Bit flips in a fraction of the bytes, a jump of vehicle time, a vehicle up for more than
+    71.6 min (SERVO_OUTPUT_RAW's uint32 clock wrapped): every packet whose own bytes are intact
+    is read; no sample lands outside the true time span (no impossible time, no unaligned servo
+    stream); the recording splits into one segment per side of a gap longer than 1 s.
+    At 3 % of the bytes (a quarter of the tlog stamps hit) a SERVO_OUTPUT_RAW stretch of a few
+    samples whose stamps are mostly damaged cannot be placed on the vehicle clock: there only the
+    streams with a clock of their own are held to the true span (8,000 draws pass at <= 1 %)."""
+    n, gap_at, gap_s, uptime_s, rate, seed = flight
+    clean, (t_first, t_last) = _flight(n, gap_at, gap_s, uptime_s)
+    buf0, off0, plen0, *_ = scan_packets(clean)
+    hdr = np.where(buf0[off0 - 10] == 0xFD, 10, 6)
+    start, end = off0 - hdr, off0 + plen0 + 2
+    rng = np.random.default_rng(seed)
+    data = bytearray(clean)
+    hit = rng.choice(len(data), size=int(rate * len(data)), replace=False)
+    for i in hit:
+        data[i] ^= 1 << int(rng.integers(8))
+    cum = np.concatenate([[0], np.cumsum(np.isin(np.arange(len(data)), hit))])
+    intact = set(off0[(cum[end] - cum[start]) == 0].tolist())
+    assert intact <= set(scan_packets(bytes(data))[1].tolist())
+    rec = _read(tmp_path, "flight.tlog", bytes(data))
+    if rec is None:
+        assert not intact
+        return
+    _tlog_accounting(bytes(data), rec)
+    for name, s in rec.streams.items():
+        if name == "servo" and rate > 0.01:
+            continue
+        assert t_first - 1e-6 <= s.time_s[0] and s.time_s[-1] <= t_last + 1e-6, name
+    if rate == 0.0:
+        assert rec.skipped.bad_time == {} and rec.skipped.non_monotonic == {}
+        assert len(rec.segment_bounds()) == (2 if gap_s > 1.0 else 1)
+        assert len(rec.servo.time_s) == len(rec.pressure.time_s)
+        assert np.abs(rec.servo.time_s - rec.pressure.time_s).max() < 1e-3  # on one clock
 
 
 @settings(max_examples=25, deadline=timedelta(seconds=30),
