@@ -74,6 +74,68 @@ def session_setpoints(duration_s: float, seed: int):
     return [(t0 * s, d, y, fx, fy) for t0, d, y, fx, fy in plan]
 
 
+def legs_setpoints(duration_s: float, seed: int):
+    """Randomised legs: every 3-9 s a new depth, heading, surge and sway, drawn at random."""
+    rng = np.random.default_rng(seed + 7001)
+    out, t = [], 0.0
+    while t < duration_s:
+        out.append((t, float(rng.uniform(0.3, 1.05)), float(rng.uniform(-math.pi, math.pi)),
+                    float(rng.choice([0.0, 1.0]) * rng.uniform(-1.8, 1.8)),
+                    float(rng.choice([0.0, 1.0]) * rng.uniform(-1.4, 1.4))))
+        t += float(rng.uniform(3.0, 9.0))
+    return out
+
+
+def joystick_setpoints(duration_s: float, seed: int):
+    """Manual flying with human timing: stick deflections held 0.4-3 s, pauses of 0.2-2 s between
+    them, one axis at a time mostly; depth changed in small steps, heading by a held yaw-rate
+    stick (integrated), the way a pilot flies ArduSub's ALT_HOLD."""
+    rng = np.random.default_rng(seed + 7002)
+    out, t, depth, yaw = [], 0.0, 0.6, 0.0
+    while t < duration_s:
+        hold = float(rng.uniform(0.4, 3.0))
+        axis = rng.choice(["surge", "sway", "yaw", "depth", "mixed"], p=[0.3, 0.2, 0.25, 0.15, 0.1])
+        fx = float(rng.uniform(-1.8, 1.8)) if axis in ("surge", "mixed") else 0.0
+        fy = float(rng.uniform(-1.4, 1.4)) if axis in ("sway", "mixed") else 0.0
+        if axis in ("yaw", "mixed"):
+            yaw += float(rng.uniform(-0.6, 0.6)) * hold
+        if axis == "depth":
+            depth = float(np.clip(depth + rng.uniform(-0.3, 0.3), 0.25, 1.05))
+        out.append((t, depth, yaw, fx, fy))
+        t += hold
+        out.append((t, depth, yaw, 0.0, 0.0))  # the stick released
+        t += float(rng.uniform(0.2, 2.0))
+    return out
+
+
+def sweep_setpoints(duration_s: float, seed: int):
+    """The held-out pilot (never looked at while tuning): 3-2-1-1 multistep inputs on surge, sway
+    and heading in turn around a slowly wandering depth (flight-test identification practice)."""
+    rng = np.random.default_rng(seed + 7003)
+    out, t = [], 0.0
+    unit = float(rng.uniform(0.6, 1.2))
+    k = 0
+    while t < duration_s:
+        axis = k % 3
+        depth = 0.55 + 0.35 * math.sin(0.05 * t + seed)
+        amp = float(rng.uniform(0.8, 1.6))
+        for n, sign in ((3, 1), (2, -1), (1, 1), (1, -1)):
+            fx = sign * amp if axis == 0 else 0.0
+            fy = sign * amp * 0.8 if axis == 1 else 0.0
+            yaw = sign * 0.5 * amp if axis == 2 else 0.0
+            out.append((t, depth, yaw, fx, fy))
+            t += n * unit
+        out.append((t, depth, 0.0, 0.0, 0.0))
+        t += float(rng.uniform(1.0, 3.0))
+        k += 1
+    return out
+
+
+PILOTS = {"scripted": session_setpoints, "legs": legs_setpoints, "joystick": joystick_setpoints,
+          "sweep": sweep_setpoints}
+HIDDEN_PILOT = "sweep"  # evaluation only: thresholds and rules were tuned without looking at it
+
+
 @dataclass(frozen=True)
 class Pilot:
     """Depth and heading PD loops plus scripted horizontal force, allocated to k vectored jets.
@@ -143,20 +205,22 @@ class SessionTruth:
 
 def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 0,
                    thrust_fraction=None, mocap: bool = True, noise: bool = True,
-                   rig_stiffness=None) -> SessionTruth:
+                   rig_stiffness=None, pilot: str = "scripted", ardusub: bool = False) -> SessionTruth:
     """Fly the pool session on the plant with the TRUE vehicle and write a .tlog at `path`.
 
     `thrust_fraction` (per unit, 1 = healthy) models a degraded thruster: the unit's propeller
     reaches sqrt(fraction) of its commanded speed, so its thrust is `fraction` of nominal
     (T ~ n^2, seed 000 eq. 15). The recorded PWM is what the pilot commanded.
+    `pilot` names the setpoint generator (PILOTS); `ardusub` records the sensors as ArduSub sends
+    them: SCALED_IMU2 (mG, mrad/s integers) and SCALED_PRESSURE2 at the vehicle file's rates.
     """
     from pymavlink.dialects.v20 import ardupilotmega as mav
 
     k = truth.n_units
     plant = Plant(truth, seed=seed, depth_m=0.5, noise=noise, rig_stiffness=rig_stiffness,
                   rig_anchor=None if rig_stiffness is None else (0.0, 0.0, 0.6))
-    pilot = Pilot(truth)
-    sps = session_setpoints(duration_s, seed)
+    flyer = Pilot(truth)
+    sps = PILOTS[pilot](duration_s, seed)
     link = mav.MAVLink(None, srcSystem=1, srcComponent=1)
     rng = np.random.default_rng(seed + 1000)
     scale = np.ones(3 * k)
@@ -171,7 +235,7 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
     for step in range(n_ctrl):
         t = step * t_ctrl
         sp = next(s for s in reversed(sps) if s[0] <= t + 1e-9)
-        pwm = command_to_pwm(truth, pilot.command(plant.state, sp))
+        pwm = command_to_pwm(truth, flyer.command(plant.state, sp))
         plant.set_command(pwm_to_command(truth, pwm) * scale)
         us = int(round(t * 1e6))
         out.append((t, 0, mav.MAVLink_servo_output_raw_message(
@@ -180,11 +244,17 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
             out.append((t, -1, mav.MAVLink_heartbeat_message(
                 mav.MAV_TYPE_SUBMARINE, mav.MAV_AUTOPILOT_GENERIC, 128, 0, mav.MAV_STATE_ACTIVE, 3).pack(link)))
         joints0 = plant.state[lay.alpha.start:lay.beta.stop].copy()
-        samples = plant.advance(t + t_ctrl - 1e-9)
+        samples = plant.advance(t + t_ctrl)
         c_times.append(t)
         j_rates.append(float(np.abs(plant.state[lay.alpha.start:lay.beta.stop] - joints0).max()) / t_ctrl)
         n_gaps.append(float(np.abs(plant.state[lay.n] - plant.command[:k]).max()))
         for s in samples.imu:
+            if ardusub:  # ArduPilot GCS_Common send_scaled_imu: mG and mrad/s, int16
+                acc = [int(np.clip(round(a / 9.80665 * 1000), -32768, 32767)) for a in s.accel_frd_m_s2]
+                gyr = [int(np.clip(round(g * 1000), -32768, 32767)) for g in s.gyro_frd_rad_s]
+                out.append((s.time_s, 1, mav.MAVLink_scaled_imu2_message(
+                    int(round(s.time_s * 1e3)), *acc, *gyr, 0, 0, 0).pack(link)))
+                continue
             out.append((s.time_s, 1, mav.MAVLink_highres_imu_message(
                 int(round(s.time_s * 1e6)), *s.accel_frd_m_s2, *s.gyro_frd_rad_s,
                 0, 0, 0, 0, 0, 0, 0, 0b111111, 0).pack(link)))
@@ -445,11 +515,266 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+# ------------------------------------------------------------------------------------------------
+# The benchmark: cases drawn from a family (pilots, sensor sets, durations, effects, magnitudes)
+
+SPLITS = {"dev": 101, "eval": 202}  # seed salts: thresholds and rules are tuned on dev only
+SENSOR_SETS = ("mocap", "imu", "ardusub")
+CONTROL_FRACTION = 0.35
+MASK_FRACTION = 0.2
+
+
+def _effect_family():
+    """(name, expect id, builder(m) -> case fields) of every effect at magnitude multiplier m (1-5x
+    the classic case's, which sits near the detectability of a 120 s pool session)."""
+    off = lambda e: {f"effects.{e}.enabled": False}  # noqa: E731
+    cap = lambda x, lo, hi: float(min(max(x, lo), hi))  # noqa: E731
+    return [
+        ("thrust_inflow", lambda m: dict(nominal_values=off("thrust_inflow"))),
+        ("motor_lag", lambda m: dict(nominal_values=off("motor_lag"),
+                                     truth_values={"thruster.motor_time_constant": cap(0.08 * m, 0.08, 0.3)},
+                                     check={"thruster.motor_time_constant": cap(0.08 * m, 0.08, 0.3)})),
+        ("servo_lag", lambda m: dict(nominal_values=off("servo_lag"),
+                                     truth_values={"servo.time_constant": cap(0.03 * m, 0.03, 0.12)},
+                                     check={"servo.time_constant": cap(0.03 * m, 0.03, 0.12)})),
+        ("azimuth_transient", lambda m: dict(nominal_values=off("azimuth_transient"),
+                                             truth_values={"effects.azimuth_transient.gain_per_newton": 0.0126 * m},
+                                             check={"effects.azimuth_transient.gain_per_newton": 0.0126 * m})),
+        ("surface_proximity", lambda m: dict(nominal_values=off("surface_proximity"))),
+        ("wall_proximity", lambda m: dict(nominal_values=off("wall_proximity"),
+                                          truth_values={"effects.wall_proximity.k_wall": 0.375 * m},
+                                          check={"effects.wall_proximity.k_wall": 0.375 * m})),
+        ("current", lambda m: dict(truth_values={"environment.current": [0.04 * m, -0.03 * m, 0.0]},
+                                   check={"environment.current": [0.04 * m, -0.03 * m, 0.0]})),
+        ("added_mass", lambda m: dict(nominal_values={"hydro.added_mass": [3.3, 3.3, 4.1 * cap(1 - 0.25 * m, 0.2, 1), 0.006, 0.006, 0.002]},
+                                      check={"hydro.added_mass[2]": 4.1})),
+        ("linear_damping", lambda m: dict(truth_values={"hydro.linear_damping": [1.8 * (1 + 0.4 * m), 1.8 * (1 + 0.4 * m), 2.6, 0.08, 0.08, 0.05]},
+                                          check={"hydro.linear_damping[0]": 1.8 * (1 + 0.4 * m)})),
+        ("quadratic_damping", lambda m: dict(truth_values={"hydro.quadratic_damping": [18.0, 18.0, 24.0 * (1 + 0.3 * m), 0.05, 0.05, 0.03]},
+                                             check={"hydro.quadratic_damping[2]": 24.0 * (1 + 0.3 * m)})),
+        ("buoyancy", lambda m: dict(truth_values={"body.volume": 0.00665 * (1 + 0.005 * m)},
+                                    check={"body.volume": 0.00665 * (1 + 0.005 * m)})),
+        ("restoring_moment", lambda m: dict(truth_values={"body.cb": [0.0, 0.0, -0.02 * cap(1 - 0.25 * m, 0.1, 1)]},
+                                            check={"body.cb[2]": -0.02 * cap(1 - 0.25 * m, 0.1, 1)})),
+        ("imu_bias", lambda m: dict(truth_values={"sensors.gyro_bias": [0.006 * m, -0.005 * m, 0.004 * m]},
+                                    check={"sensors.gyro_bias": [0.006 * m, -0.005 * m, 0.004 * m]})),
+        ("sensor_delay", lambda m: dict(truth_values={"sensors.delay": cap(0.03 * m, 0.03, 0.12)},
+                                        check={"sensors.delay": cap(0.03 * m, 0.03, 0.12)})),
+        ("thruster_fault", lambda m: dict(thrust_fraction=(1.0, 1.0, cap(1 - 0.25 * m, 0.2, 1), 1.0),
+                                          check={"thruster_fault.unit[2].thrust_fraction": cap(1 - 0.25 * m, 0.2, 1)})),
+    ]
+
+
+@dataclass(frozen=True)
+class Flight:
+    """How a benchmark case is flown and sensed."""
+
+    pilot: str
+    sensors: str  # mocap, imu (no motion capture), ardusub (SCALED_IMU2 and ArduSub rates, no mocap)
+    imu_hz: float
+    duration_s: float
+
+
+def family_case(split: str, index: int) -> tuple[Case, Flight, float]:
+    """Case `index` of the benchmark's `split` ("dev" or "eval"): (case, flight, magnitude)."""
+    rng = np.random.default_rng([SPLITS[split], index])
+    pilots = [p for p in PILOTS if p != HIDDEN_PILOT or split == "eval"]
+    sensors = str(rng.choice(SENSOR_SETS))
+    flight = Flight(str(rng.choice(pilots)), sensors,
+                    float(rng.choice([25.0, 50.0]) if sensors == "ardusub" else rng.choice([50.0, 100.0, 200.0])),
+                    float(rng.choice([60.0, 90.0, 120.0, 180.0, 300.0, 600.0], p=[0.3, 0.2, 0.25, 0.1, 0.1, 0.05])))
+    seed = int(rng.integers(1, 1_000_000))
+    fam = _effect_family()
+    if rng.random() < CONTROL_FRACTION:
+        return Case(f"{split}-{index:03d} control", (), seed=seed), flight, 0.0
+    name, build = fam[int(rng.integers(len(fam)))]
+    m = float(np.exp(rng.uniform(0.0, math.log(5.0))))
+    fields = build(m)
+    expect = (name,)
+    if rng.random() < MASK_FRACTION:  # a masking second effect at its classic magnitude
+        others = [f for f in fam if f[0] != name and f[0] not in ("thruster_fault",) and name != "thruster_fault"]
+        if others:
+            oname, obuild = others[int(rng.integers(len(others)))]
+            o = obuild(1.0)
+            fields = dict(fields)
+            for key in ("truth_values", "nominal_values"):
+                fields[key] = {**o.get(key, {}), **fields.get(key, {})}
+            expect = (name, oname)
+    case = Case(f"{split}-{index:03d} {'+'.join(expect)} x{m:.1f}", expect, seed=seed, **fields)
+    return case, flight, m
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a proportion k/n (Wilson 1927)."""
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = k / n
+    den = 1 + z * z / n
+    mid = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return (max(0.0, mid - half), min(1.0, mid + half))
+
+
+def run_family_case(split: str, index: int, out_dir, reference: Vehicle | None = None, draws: int | None = None) -> dict:
+    """Record and diagnose benchmark case `index` of `split`; its row for family.json."""
+    from ground.diagnose import diagnose
+    from ground.diagnose.core import NULL_DRAWS
+    from ground.diagnose.report import write_json
+    from ground.recording import read_recording
+
+    t0 = time.perf_counter()
+    reference = reference or load_vehicle(None)
+    case, flight, m = family_case(split, index)
+    out_dir = Path(out_dir)
+    rates = {"sensors.imu_rate": flight.imu_hz}
+    if flight.sensors == "ardusub":
+        rates.update({"sensors.attitude_rate": 10.0, "sensors.pressure_rate": 10.0})
+    truth_v = reference.with_values({**rates, **case.truth_values})
+    nominal = reference.with_values(case.nominal_values) if case.nominal_values else reference
+    slug = "".join(c if c.isalnum() else "_" for c in case.name.split(" ")[0])
+    rec_path = out_dir / f"{slug}.tlog"
+    row = {"case": case.name, "split": split, "index": index, "expect": list(case.expect), "magnitude": round(m, 3),
+           "pilot": flight.pilot, "sensors": flight.sensors, "imu_hz": flight.imu_hz, "duration_s": flight.duration_s}
+    try:
+        record_session(truth_v, rec_path, flight.duration_s, seed=case.seed, thrust_fraction=case.thrust_fraction,
+                       mocap=flight.sensors == "mocap", pilot=flight.pilot, ardusub=flight.sensors == "ardusub")
+        (out_dir / f"{slug}.nominal.toml").write_text(vehicle_toml(nominal, _vehicle_note(case)))
+        rep = diagnose(read_recording(rec_path), nominal, draws=NULL_DRAWS if draws is None else draws).report
+        write_json(rep, out_dir / f"{slug}.json")
+    except Exception as exc:  # a case that breaks is a row with its error, never the end of the run
+        row.update(error=f"{type(exc).__name__}: {exc}", time_s=round(time.perf_counter() - t0, 1))
+        return row
+    findings = rep["findings"]
+    named = [f["effect"] for f in findings]
+    before, after = rep["fit"]["holdout"]["before"]["total"], rep["fit"]["holdout"]["after"]["total"]
+    row.update(named=named, untestable=[u["effect"] for u in rep.get("untestable", [])],
+               nrmse_before=before, nrmse_after=after, diagnose_s=rep["elapsed_s"],
+               time_s=round(time.perf_counter() - t0, 1))
+    if case.expect:
+        primary = case.expect[0]
+        row["top1"] = bool(named) and (named[0] == primary or (len(case.expect) > 1 and named[0] in case.expect))
+        row["top2"] = primary in named[:2]
+        row["testable"] = primary not in row["untestable"]
+        perr = _param_error(case, findings)
+        row["param_error"] = None if perr is None or not math.isfinite(perr) else round(perr, 4)
+        row["within_3sd"] = _within_sd(case, findings, 3.0)
+        row["nrmse_drop"] = round((before - after) / before, 3) if named and before and before > 0 else None
+    return row
+
+
+def _within_sd(case: Case, findings: list, k: float):
+    """Whether every checked parameter is within k reported standard deviations of the truth."""
+    if not case.check:
+        return None
+    f = next((f for f in findings if f["effect"] == case.expect[0]), None)
+    if f is None or "std" not in f:
+        return None
+    for key, truth in case.check.items():
+        base, _, idx = key.partition("[")
+        got, sd = f["parameters"].get(base), f["std"].get(base)
+        if got is None or sd is None:
+            return None
+        if idx:
+            got, sd = got[int(idx.rstrip("]"))], sd[int(idx.rstrip("]"))]
+        t, g, s = (np.atleast_1d(np.asarray(v, float)) for v in (truth, got, sd))
+        if np.any(np.abs(g - t) > k * np.maximum(s, 1e-300)):
+            return False
+    return True
+
+
+def family_table(rows: list[dict]) -> str:
+    """The benchmark's markdown table: rates with 95 % Wilson intervals, by sensor set and by
+    effect, and the confusion matrix (expected primary effect -> first finding)."""
+    ok = [r for r in rows if "error" not in r]
+    lines = [f"{len(rows)} cases ({len(rows) - len(ok)} raised), "
+             f"{sum(1 for r in ok if not r['expect'])} controls", ""]
+
+    def rate(sel, key):
+        vals = [r[key] for r in sel if r.get(key) is not None]
+        k = sum(bool(v) for v in vals)
+        lo, hi = wilson(k, len(vals))
+        return f"{k}/{len(vals)} ({100 * k / len(vals):.0f} %, {100 * lo:.0f}-{100 * hi:.0f})" if vals else "-"
+
+    def block(sel):
+        ctrl = [r for r in sel if not r["expect"]]
+        eff = [r for r in sel if r["expect"]]
+        test = [r for r in eff if r.get("testable")]
+        false = [dict(r, false=bool(r["named"])) for r in ctrl]
+        pe = [dict(r, ok15=r.get("param_error") is not None and r["param_error"] <= 0.15)
+              for r in test if r.get("top2") and r.get("param_error") is not None]
+        drops = [r["nrmse_drop"] for r in test if r.get("nrmse_drop") is not None]
+        worse = sum(1 for r in ok if r.get("named") and r.get("nrmse_after", 0) > r.get("nrmse_before", 0))
+        return (rate(false, "false"), rate(eff, "testable"), rate(test, "top1"), rate(test, "top2"),
+                rate(pe, "ok15"), rate([r for r in test if r.get("within_3sd") is not None], "within_3sd"),
+                f"{100 * float(np.median(drops)):.0f} %" if drops else "-", str(worse))
+
+    head = ("| set | cases | controls: false findings | effects testable | top-1 (testable) | top-2 (testable) "
+            "| param within 15 % | param within 3 sd | median NRMSE drop | worse fits |")
+    lines += [head, "|" + "---|" * 10]
+    groups = [("all", ok)] + [(f"sensors: {s}", [r for r in ok if r["sensors"] == s]) for s in SENSOR_SETS] + \
+             [(f"pilot: {p}", [r for r in ok if r["pilot"] == p]) for p in PILOTS]
+    for name, sel in groups:
+        if sel:
+            lines.append(f"| {name} | {len(sel)} | " + " | ".join(block(sel)) + " |")
+    lines += ["", "| effect | cases | testable | top-1 (testable) | top-2 (testable) | param within 15 % |", "|---|---|---|---|---|---|"]
+    for eff in sorted({r["expect"][0] for r in ok if r["expect"]}):
+        sel = [r for r in ok if r["expect"] and r["expect"][0] == eff]
+        b = block(sel)
+        lines.append(f"| {eff} | {len(sel)} | {b[1]} | {b[2]} | {b[3]} | {b[4]} |")
+    truths = sorted({r["expect"][0] if r["expect"] else "control" for r in ok})
+    firsts = sorted({(r["named"] or ["(none)"])[0] for r in ok})
+    lines += ["", "confusion (rows: concealed primary effect; columns: first finding)", "",
+              "| | " + " | ".join(firsts) + " |", "|" + "---|" * (len(firsts) + 1)]
+    for tname in truths:
+        sel = [r for r in ok if (r["expect"][0] if r["expect"] else "control") == tname]
+        cnt = [sum(1 for r in sel if (r["named"] or ["(none)"])[0] == f) for f in firsts]
+        lines.append(f"| {tname} | " + " | ".join(str(c) if c else "" for c in cnt) + " |")
+    return "\n".join(lines)
+
+
+def run_family(split: str, n: int, out: Path, workers: int = 2, first: int = 0, progress=None) -> list[dict]:
+    """Cases first..first+n-1 of `split`, on a process pool; family.json rewritten as each ends."""
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "family.json"
+    done = {}
+    if path.exists():  # resume: cases already done are kept
+        try:
+            done = {(r["split"], r["index"]): r for r in json.loads(path.read_text())["cases"] if "error" not in r}
+        except (ValueError, KeyError):
+            done = {}
+    todo = [i for i in range(first, first + n) if (split, i) not in done]
+    rows = [done[(split, i)] for i in range(first, first + n) if (split, i) in done]
+    ctx = mp.get_context("spawn")  # numba's threads and fork do not mix (hil/batch.py)
+    with cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx) as pool:
+        futs = {pool.submit(run_family_case, split, i, str(out)): i for i in todo}
+        for k, fut in enumerate(cf.as_completed(futs)):
+            try:
+                row = fut.result()
+            except Exception as exc:  # a worker that died
+                row = {"case": f"{split}-{futs[fut]:03d}", "split": split, "index": futs[fut], "expect": [],
+                       "error": f"{type(exc).__name__}: {exc}"}
+            rows.append(row)
+            rows.sort(key=lambda r: r["index"])
+            path.write_text(json.dumps({"split": split, "cases": rows}, indent=1) + "\n")
+            if progress:
+                progress(f"[{k + 1}/{len(todo)}] {row['case']}: named {row.get('named', row.get('error'))} "
+                         f"({row.get('time_s', '?')} s)")
+    return rows
+
+
 def configure(parser) -> None:
     parser.add_argument("--out", default="prove_out", help="directory for recordings, reports and prove.json")
     parser.add_argument("--vehicle", default=None, help="reference vehicle TOML (default asr4)")
     parser.add_argument("--duration", type=float, default=120.0, help="pool-session length, s (default 120)")
     parser.add_argument("--only", default=None, help="run only cases whose name contains this text")
+    parser.add_argument("--split", choices=sorted(SPLITS), default=None,
+                        help="run the benchmark family instead of the classic cases: dev (tuning) or eval seeds")
+    parser.add_argument("--cases", type=int, default=30, help="benchmark: how many cases of the split (default 30)")
+    parser.add_argument("--first", type=int, default=0, help="benchmark: index of the first case (default 0)")
+    parser.add_argument("--workers", type=int, default=2, help="benchmark: worker processes (default 2)")
     parser.add_argument("--quiet", action="store_true")
 
 
@@ -470,6 +795,16 @@ def run(args) -> int:
     except OSError as exc:
         print(f"jetloop prove: cannot create {out}: {exc}", file=sys.stderr)
         return 2
+    if args.split is not None:
+        if args.cases < 1 or args.first < 0 or args.workers < 1:
+            print("jetloop prove: --cases and --workers must be at least 1, --first at least 0", file=sys.stderr)
+            return 2
+        say = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+        rows = run_family(args.split, args.cases, out, args.workers, args.first, say)
+        text = family_table(rows)
+        (out / "family.md").write_text(text + "\n")
+        print(text)
+        return 0
     chosen = [c for c in cases() if args.only is None or args.only in c.name]
     if not chosen:
         print(f"jetloop prove: no case matches {args.only!r}", file=sys.stderr)

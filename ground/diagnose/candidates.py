@@ -86,23 +86,27 @@ class Candidate:
             v = v.with_values(values)
         return CorrectedModel(v, corr, None if frac is None else tuple(frac))
 
-    def parameters(self, theta, base: Vehicle) -> dict:
-        """Fitted values keyed by vehicle-file key, in that key's shape (spec/recording.md 2)."""
+    def parameters(self, theta, base: Vehicle, deviations: bool = False) -> dict:
+        """Fitted values keyed by vehicle-file key, in that key's shape (spec/recording.md 2).
+
+        With `deviations`, `theta` holds standard deviations: elements not fitted are 0."""
         out: dict = {}
         for (key, idx), val in zip(self.keys, np.asarray(theta, float)):
             if key.startswith("thruster_fault."):
-                out[f"thruster_fault.unit[{idx}].thrust_fraction"] = round(float(val), 4)
+                out[f"thruster_fault.unit[{idx}].thrust_fraction"] = float(f"{val:.4g}")
                 continue
             if idx is None:
                 out[key] = float(f"{val:.5g}")
             else:
                 cur = out.get(key)
                 if cur is None:
-                    cur = [0.0, 0.0, 0.0] if key.startswith("sensors.") else [float(c) for c in base.get(key)]
+                    n = 3 if key.startswith("sensors.") else len(base.get(key))
+                    cur = [0.0] * n if key.startswith("sensors.") or deviations else [float(c) for c in base.get(key)]
                 cur[idx] = float(f"{val:.5g}")
                 out[key] = cur
-        for e in self.switch_on:
-            out[f"effects.{e}.enabled"] = True
+        if not deviations:
+            for e in self.switch_on:
+                out[f"effects.{e}.enabled"] = True
         return out
 
 
@@ -185,9 +189,10 @@ class Evaluator:
     residual. Built ready to use from a recording and the nominal vehicle.
     """
 
-    def __init__(self, rec, nominal: Vehicle):
+    def __init__(self, rec, nominal: Vehicle, lead: replay.LeadIn | None = None):
         self.rec = rec
         self.nominal = nominal
+        self.lead = lead
         self.k = nominal.n_units
         self._traj: dict = {}
         self._act: dict = {}
@@ -199,13 +204,14 @@ class Evaluator:
         if key not in self._traj:
             if len(self._traj) > 64:
                 self._traj.clear()
-            self._traj[key] = replay.reconstruct(self.rec, self.nominal, corr)
+            self._traj[key] = replay.reconstruct(self.rec, self.nominal, corr, self.lead)
         return self._traj[key]
 
-    def command(self, traj, cm: CorrectedModel) -> np.ndarray:
+    def command(self, traj, cm: CorrectedModel, command=None) -> np.ndarray:
+        command = traj.command if command is None else command
         if cm.thrust_fraction is None:
-            return traj.command
-        c = np.array(traj.command)
+            return command
+        c = np.array(command)
         c[:, :self.k] *= np.sqrt(np.asarray(cm.thrust_fraction))
         return c
 
@@ -214,8 +220,16 @@ class Evaluator:
         if key not in self._act:
             if len(self._act) > 64:
                 self._act.clear()
-            self._act[key] = replay.actuator_run(traj, p, self.k, command=self.command(traj, cm))
+            lead = self.lead
+            if lead is not None:
+                lead = replay.LeadIn(self.command(traj, cm, lead.command), lead.x0)
+            self._act[key] = replay.actuator_run_lead(self.command(traj, cm), traj.dt_s, p, self.k, lead)
         return self._act[key]
+
+    def disturbance(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 6) smoothed generalised-force disturbance of the nominal model and its sd (N, N m)."""
+        est = self.traj0.estimate
+        return est.disturbance, est.disturbance_std
 
     def residual(self, cm: CorrectedModel) -> np.ndarray:
         traj = self.trajectory(cm.correction)
@@ -236,6 +250,10 @@ class SegmentedEvaluator:
 
     def residual(self, cm: CorrectedModel) -> np.ndarray:
         return np.concatenate([e.residual(cm) for e in self.evaluators])
+
+    def disturbance(self) -> tuple[np.ndarray, np.ndarray]:
+        parts = [e.disturbance() for e in self.evaluators]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
 @dataclass(frozen=True)

@@ -17,18 +17,18 @@ from scipy.signal import savgol_filter
 from onboard import model
 from onboard.vehicle import Vehicle
 
-from . import locate, replay, sparse
+from scipy.stats import chi2 as chi2_dist
+
+from . import decide, locate, null, replay, sparse
 from .candidates import (CHANNEL_AXIS, CHANNELS, CorrectedModel, Evaluator, Fit, SegmentedEvaluator,
                          candidates_for, chi2, combine, fit)
 
-# Decision thresholds (held-out chi-square units, noise-normalised; see README "diagnose").
-MIN_DELTA = 40.0  # a finding must lower the held-out chi-square by at least this ...
-MIN_DELTA_PER_PARAM = 4.0  # ... plus this per fitted parameter
-MIN_EXPLAINED = 0.15  # ... and remove at least this fraction of the held-out excess over noise
-SECOND_MIN_GAIN = 0.15  # a second effect must add this fraction of the first one's improvement
+# Decision: calibrated thresholds per recording (decide.py); these shape the report.
 UNKNOWN_IF_EXPLAINED_BELOW = 0.5
 SHOOT_S = 2.0  # multiple-shooting window length for the held-out NRMSE
-FIT_SEGMENTS = 4
+WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re-fly each from its start)
+LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn)
+NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
 Z_GATE = 2.5  # a finding's held-out improvement must exceed Z_GATE sd of the held-out chi-square
 
 PHRASES = {
@@ -68,73 +68,112 @@ def _say(progress, msg):
         progress(msg)
 
 
-def significant(f: Fit, gate: float) -> bool:
-    """Named only if it lowers the held-out chi-square by more than the gate (and a minimum per
-    parameter), removes a fair share of the held-out excess, and wins on BIC in training."""
-    return (f.delta_holdout > max(gate, MIN_DELTA + MIN_DELTA_PER_PARAM * f.candidate.n_params)
-            and f.explained > MIN_EXPLAINED and f.bic < -10.0)
+def fit_windows(rec, max_fit_s: float) -> list[tuple[float, float]]:
+    """[(t0, t1)] of the fitting windows: WINDOW_S each, at most max_fit_s in all, spread evenly
+    over the recording's segments (every regime stays represented; a gap never inside one)."""
+    out = []
+    for a, b in rec.segment_bounds():
+        n = int((b - a) // WINDOW_S)
+        out += [(a + i * WINDOW_S, a + (i + 1) * WINDOW_S) for i in range(n)]
+    if not out:  # shorter than one window: the whole of it
+        bounds = rec.segment_bounds() or [(rec.t_start_s, rec.t_end_s)]
+        a, b = max(bounds, key=lambda s: s[1] - s[0])
+        return [(a, b)]
+    keep = max(1, int(max_fit_s // WINDOW_S))
+    if len(out) > keep:
+        out = [out[i] for i in np.unique(np.round(np.linspace(0, len(out) - 1, keep)).astype(int))]
+    return out
 
 
-def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0) -> Diagnosis:
+def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, draws: int = NULL_DRAWS,
+             seed: int = 0) -> Diagnosis:
+    """estimate -> disturbance -> candidates -> decide -> report (module doc, README)."""
     t_start = time.perf_counter()
-    _say(progress, f"replaying {rec.duration_s:.1f} s through the nominal model '{vehicle.name}'")
+    rec = _longest_segment(rec, progress)
+    _say(progress, f"estimating {rec.duration_s:.1f} s with the nominal model '{vehicle.name}' (EKF + RTS smoother)")
     ev = Evaluator(rec, vehicle)
     traj = ev.traj0
     res0 = ev.residual(ev.base)
-    _say(progress, "estimating the noise floor from the data")
     noise = locate.noise_realisation(ev, res0)
     split = locate.make_split(traj, noise)
     p0 = model.pack_params(vehicle)
     act0 = ev.actuators(traj, p0, ev.base)
     windows = locate.flag_windows(traj, res0, noise, split, vehicle, act0)
     _say(progress, f"{len(windows)} window(s) above the noise floor")
-    # Long recordings: candidates are fitted and scored on at most `max_fit_s` seconds, in
-    # FIT_SEGMENTS segments spread evenly over the recording (every regime stays represented).
-    ev_fit, split_fit, res0_fit = ev, split, res0
-    if rec.duration_s > max_fit_s:
-        seg = max_fit_s / FIT_SEGMENTS
-        t_a, t_b = traj.time_s[0], traj.time_s[-1]
-        starts = np.linspace(t_a, t_b - seg, FIT_SEGMENTS)
-        evs = [Evaluator(rec.between(s0, s0 + seg), vehicle) for s0 in starts]
-        ev_fit = SegmentedEvaluator(evs)
-        res0_fit = ev_fit.residual(ev_fit.base)
-        noises = [locate.noise_realisation(e, e.residual(e.base)) for e in evs]
-        split_fit = locate.make_split([e.traj0 for e in evs], noises)
-        _say(progress, f"fitting on {FIT_SEGMENTS} segments of {seg:.0f} s spread over the recording")
-    # --- name: every candidate alone
+    # --- candidates, scored on short windows spread over the recording (the null draws re-fly them)
+    spans = fit_windows(rec, max_fit_s)
+    recs_w = [rec.between(a, b) for a, b in spans]
+    leads = [_lead_in(rec, traj, r, vehicle) for r in recs_w]
+    evs = [Evaluator(r, vehicle, lead) for r, lead in zip(recs_w, leads)]
+    ev_fit = SegmentedEvaluator(evs)
+    res0_fit = ev_fit.residual(ev_fit.base)
+    split_fit = locate.make_split([e.traj0 for e in evs], [locate.noise_realisation(e, e.residual(e.base)) for e in evs])
     cands = candidates_for(vehicle)
-    fits: list[Fit] = []
-    for i, c in enumerate(cands):
+    families = [c.effect for c in cands]
+    _say(progress, f"scoring {len(cands)} candidates on {len(spans)} window(s) of {WINDOW_S:.0f} s")
+    scores = decide.linear_scores(ev_fit, cands, split_fit, res0_fit, vehicle) + [
+        decide.bias_score([e.traj0 for e in evs], vehicle)]
+    # --- calibrate on recordings of the null hypothesis (null.py)
+    sig = locate.sensor_noise(rec)
+    rng = np.random.default_rng(seed)
+    null_scores = []
+    for b in range(draws):
         t0 = time.perf_counter()
-        f = fit(ev_fit, c, split_fit, res0_fit)
-        fits.append(f)
-        _say(progress, f"[{i + 1}/{len(cands)}] {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}  "
-                       f"explains {100 * f.explained:5.1f} %  ({time.perf_counter() - t0:.1f} s)")
-    fits.sort(key=lambda f: -f.delta_holdout)
-    n_h_fit = len(split_fit.holdout) * float(split_fit.neff[split_fit.active].sum())
-    gate = Z_GATE * math.sqrt(2.0 * n_h_fit)
+        recs_b = [null.simulate_window(r, e.traj0, e.actuators(e.traj0, p0, e.base), vehicle, sig, rng,
+                                       start=_state_at(traj, e.traj0.time_s[0])) for r, e in zip(recs_w, evs)]
+        evs_b = [Evaluator(r, vehicle, lead) for r, lead in zip(recs_b, leads)]
+        ev_b = SegmentedEvaluator(evs_b)
+        res_b = ev_b.residual(ev_b.base)
+        if len(res_b) != len(res0_fit):  # a draw on another grid cannot share the weights
+            continue
+        null_scores.append(decide.linear_scores(ev_b, cands, split_fit, res_b, vehicle)
+                           + [decide.bias_score([e.traj0 for e in evs_b], vehicle)])
+        _say(progress, f"null draw {b + 1}/{draws} ({time.perf_counter() - t0:.1f} s)")
+    cal = decide.calibrate(null_scores, families)
+    by_effect = {s.effect: s for s in scores}
+    untestable = []
+    for c in cands:
+        s = by_effect[c.effect]
+        if not decide.testable(s, cal):
+            untestable.append({"effect": c.effect, "reason": untestable_reason(c.effect, s, cal, traj, vehicle, rec)})
+    skip = {u["effect"] for u in untestable}
+    for s in scores:
+        _say(progress, f"{s.effect:18s} S = {s.statistic:10.1f}  threshold {cal.threshold[s.effect]:8.1f}"
+                       f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")
+    significant = [s for s in scores if s.effect not in skip and s.statistic > cal.threshold[s.effect]
+                   and not (s.holdout_drop <= 0)]  # NaN (imu_bias) passes: it has no residual step
+    # --- rank the significant force candidates by their held-out drop; a second one must pass the
+    # nested score test (its gain on top of the first) against its own calibrated threshold
+    ranked = sorted((s for s in significant if s.effect != "imu_bias"), key=lambda s: -s.holdout_drop)
+    named: list = ranked[:1]
+    if ranked:
+        best_pair = None
+        for other in ranked[1:4]:
+            gain, gain_h = decide.joint_gain(ranked[0], other)
+            _say(progress, f"pair {ranked[0].effect}+{other.effect}: gain {gain:.1f} (threshold "
+                           f"{cal.threshold[other.effect]:.1f}), held-out {gain_h:.1f}")
+            if gain > cal.threshold[other.effect] and gain_h > 0 and (best_pair is None or gain_h > best_pair[1]):
+                best_pair = (other, gain_h)
+        if best_pair is not None:
+            named.append(best_pair[0])
+    # --- the named candidates' parameters by nonlinear least squares (training blocks)
+    fits: list[Fit] = []
+    for s in named:
+        c = next(c for c in cands if c.effect == s.effect)
+        x0 = tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params else None
+        fits.append(fit(ev_fit, c, split_fit, res0_fit, x0=x0))
     chosen: list[Fit] = []
-    best = fits[0]
     final = None
-    if significant(best, gate):
-        chosen.append(best)
-        final = best
-        # --- a second effect on top of the first
-        others = [f for f in fits[1:4] if f.delta_holdout > 0]
-        pair_best = None
-        for other in others:
-            pc = combine(best.candidate, other.candidate)
-            pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(best.theta) + tuple(other.theta))
-            _say(progress, f"pair {pc.effect:34s} held-out chi2 -{pf.delta_holdout:9.1f}")
-            if pair_best is None or pf.delta_holdout > pair_best[0].delta_holdout:
-                pair_best = (pf, other)
-        if pair_best is not None:
-            pf, other = pair_best
-            gain = pf.delta_holdout - best.delta_holdout
-            if (gain > max(gate, MIN_DELTA, SECOND_MIN_GAIN * best.delta_holdout)
-                    and gain > MIN_DELTA_PER_PARAM * other.candidate.n_params):
-                chosen = list(_split_pair(pf, best, other))
-                final = pf
+    if len(fits) == 1:
+        chosen, final = fits, fits[0]
+    elif len(fits) == 2:
+        pc = combine(fits[0].candidate, fits[1].candidate)
+        pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(fits[0].theta) + tuple(fits[1].theta))
+        chosen, final = list(_split_pair(pf, fits[0], fits[1])), pf
+    for f in chosen:
+        _say(progress, f"fit {f.candidate.effect:18s} {f.candidate.parameters(f.theta, vehicle)}")
+    bias = by_effect["imu_bias"]
+    bias_named = any(s.effect == "imu_bias" for s in significant)
     # --- unknown: a sparse term when nothing known explains enough
     c0_h, _ = chi2(res0, split, split.holdout)
     n_h = len(split.holdout) * float(split.neff[split.active].sum())
@@ -142,33 +181,53 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0) -> 
     unknown = None
     explained_now = final.explained if final is not None else 0.0
     final_res = ev.residual(final.model) if final is not None else res0
-    if excess0 > 2 * Z_GATE * math.sqrt(2.0 * n_h) and explained_now < UNKNOWN_IF_EXPLAINED_BELOW:
+    gate_unknown = max(2 * Z_GATE * math.sqrt(2.0 * n_h), cal.pooled_scale * float(chi2_dist.ppf(1 - cal.alpha_family, 6)))
+    if excess0 > gate_unknown and explained_now < UNKNOWN_IF_EXPLAINED_BELOW and not bias_named:
         _say(progress, "no known effect explains the residual: fitting a sparse data-driven term")
-        # the sparse term alone against the nominal model, and on top of the known findings
         alone = _unknown_term(ev, traj, vehicle, None, res0, split)
         unknown = _unknown_term(ev, traj, vehicle, final, final_res, split) if final is not None else alone
         if alone is not None and final is not None and alone["delta"] > final.delta_holdout:
             unknown = dict(alone, first=True)
+        if unknown is not None and unknown["delta"] <= gate_unknown:
+            unknown = None
         if unknown is not None:
             _say(progress, f"unknown term: {unknown['formula']}")
-    # --- show: held-out multiple shooting, before and after
+    # --- show: held-out multiple shooting, before and after; never a finding that fits worse
     _say(progress, "held-out multiple shooting, before and after")
     final_model = final.model if final is not None else ev.base
     extra = None
-    if unknown is not None and unknown["delta"] > Z_GATE * math.sqrt(2.0 * n_h):
+    if unknown is not None:
         extra = unknown["coefficients"]  # the data-driven term joins the corrected simulation
         if unknown.get("first"):
             final_model = ev.base
-    shots = _shoot_holdout(ev, traj, split, ev.base, final_model, extra, replay.nominal_mass_diag(vehicle))
+    mdiag = replay.nominal_mass_diag(vehicle)
+    shots = _shoot_holdout(ev, traj, split, ev.base, final_model, extra, mdiag)
+    rejected = []
+    if (chosen or unknown is not None) and not shots["total_after"] < shots["total_before"]:
+        rejected = [f.candidate.effect for f in chosen] + (["unknown"] if unknown is not None else [])
+        _say(progress, f"rejected {', '.join(rejected)}: the held-out fit is not better than the nominal's")
+        chosen, final, unknown = [], None, None
+        final_res = res0
+        shots = _shoot_holdout(ev, traj, split, ev.base, ev.base, None, mdiag)
     res1 = final_res
-    findings = [_finding(f, vehicle, split, traj, res0, noise, i == 0, fits) for i, f in enumerate(chosen)]
-    if unknown is not None and unknown["delta"] > Z_GATE * math.sqrt(2.0 * n_h):
+    n_fam = len(families)
+    findings = [_finding(f, vehicle, by_effect.get(f.candidate.effect), cal, n_fam) for f in chosen]
+    if bias_named:
+        entry = _bias_finding(bias, cal, n_fam)
+        if not findings or bias.statistic / cal.threshold["imu_bias"] > max(
+                by_effect[f["effect"]].statistic / cal.threshold[f["effect"]] for f in findings):
+            findings.insert(0, entry)
+        else:
+            findings.append(entry)
+    if unknown is not None:
         entry = {"effect": "unknown", "kind": "missing",
                  "confidence": round(unknown["confidence"], 3), "parameters": {},
                  "explanation": unknown["explanation"], "formula": unknown["formula"],
                  "heldout_chi2_drop": round(unknown["delta"], 1)}
         # ranked by what it explains: first when it explains more than the known effects named
         findings.insert(0 if unknown.get("first") or not findings else len(findings), entry)
+    est = traj.estimate
+    dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
         "recording": rec.summary(),
         "mismatch": {
@@ -176,8 +235,18 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0) -> 
             "windows": [{k: w[k] for k in ("t0", "t1", "axes", "score", "regimes", "channels")} for w in windows],
             "noise_floor": {CHANNELS[c]: float(f"{split.sigma[c]:.4g}") for c in range(len(CHANNELS)) if split.active[c]},
             "heldout_chi2_per_sample": round(c0_h / max(n_h, 1e-9), 3),
+            "disturbance": {
+                "axes": list(replay.AXES), "units": ["N"] * 3 + ["N m"] * 3,
+                "mean": [round(float(v), 4) for v in dist.mean(axis=0)],
+                "rms": [round(float(v), 4) for v in np.sqrt(np.mean(dist ** 2, axis=0))],
+                "median_sd": [round(float(v), 4) for v in np.median(dist_sd, axis=0)],
+                "innovation_rms": {k: round(v, 3) for k, v in est.innovation_rms.items()},
+                "outliers": est.outliers,
+            },
         },
         "findings": findings,
+        "untestable": untestable,
+        "rejected": rejected,
         "fit": {
             "holdout": {
                 "before": {"total": round(shots["total_before"], 4),
@@ -187,21 +256,97 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0) -> 
                 "raw": {"before": round(shots["total_raw_before"], 4), "after": round(shots["total_raw_after"], 4)},
             },
             "holdout_fraction": round(split.holdout_fraction, 3),
-            "method": (f"multiple shooting: {SHOOT_S:.0f} s windows re-initialised from the measurements, "
+            "method": (f"multiple shooting: {SHOOT_S:.0f} s windows re-initialised from the smoothed state, "
                        f"inside held-out blocks ({locate.BLOCK_S:.0f} s blocks, 3 of every 10); NRMSE against "
                        f"the measurement smoothed like the replay ({replay.SMOOTH_S} s Savitzky-Golay) with the "
                        "white sensor noise left in it removed in quadrature (variance estimated from the data); "
                        "'raw': plain NRMSE against the raw measurement"),
         },
+        "calibration": {
+            "null_draws": cal.draws, "alpha_family": round(cal.alpha_family, 5),
+            "alpha_recording": decide.ALPHA_RECORDING, "pooled_scale": round(cal.pooled_scale, 3),
+            "scale": {k: round(v, 3) for k, v in cal.scale.items()},
+            "threshold": {k: round(v, 2) for k, v in cal.threshold.items()},
+            "null_max": {k: round(v, 2) for k, v in cal.null_max.items()},
+        },
         "candidates": [
-            {"effect": f.candidate.effect, "kind": f.candidate.kind,
-             "heldout_chi2_drop": round(f.delta_holdout, 1), "explained": round(f.explained, 3),
-             "bic": round(f.bic, 1), "parameters": f.candidate.parameters(f.theta, vehicle)}
-            for f in fits
+            {"effect": s.effect, "statistic": round(s.statistic, 2), "threshold": round(cal.threshold[s.effect], 2),
+             "heldout_chi2_drop": None if not math.isfinite(s.holdout_drop) else round(s.holdout_drop, 1),
+             "confidence": round(decide.confidence(s, cal, n_fam), 4), "testable": s.effect not in skip}
+            for s in sorted(scores, key=lambda s: -s.statistic / cal.threshold[s.effect])
         ],
         "elapsed_s": round(time.perf_counter() - t_start, 2),
     }
-    return Diagnosis(report, traj, res0, res1, windows, fits, shots, replay.nominal_mass_diag(vehicle))
+    return Diagnosis(report, traj, res0, res1, windows, fits, shots, mdiag)
+
+
+def _lead_in(rec, traj, window, vehicle) -> replay.LeadIn:
+    """The LEAD_S of commands before a window (replay.LeadIn): its actuators start mid-flight. The
+    window's smoother starts from its generic prior, as a null draw's does (the same statistic)."""
+    t_w, dt = replay.grid_for(window)
+    t_lead = t_w[0] - dt * np.arange(int(round(LEAD_S / dt)), 0, -1)
+    t_lead = t_lead[t_lead >= rec.servo.time_s[0]]
+    cmd = replay.held_commands(rec, vehicle, t_lead) if len(t_lead) else np.zeros((0, 3 * vehicle.n_units))
+    return replay.LeadIn(cmd, None)
+
+
+def _state_at(traj, t: float):
+    """(x, sd) of the whole recording's smoothed estimate at time t."""
+    i = int(np.clip(np.searchsorted(traj.time_s, t), 0, len(traj.time_s) - 1))
+    return traj.estimate.x[i], traj.estimate.std[i]
+
+
+def _longest_segment(rec, progress):
+    """A recording with gaps is diagnosed on its longest stretch (the others are listed)."""
+    bounds = rec.segment_bounds() if hasattr(rec, "segment_bounds") else []
+    if len(bounds) <= 1:
+        return rec
+    a, b = max(bounds, key=lambda s: s[1] - s[0])
+    _say(progress, f"{len(bounds)} segments between gaps: diagnosing the longest, {a:.1f}-{b:.1f} s")
+    return rec.between(a, np.nextafter(b, np.inf))
+
+
+def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
+    """Why the recording cannot test `effect`: a rule on the motion when one explains it, and the
+    Cramer-Rao bound that decided it."""
+    sd = decide.calibrated_sd(s, cal)
+    rel = float(np.min(sd / np.maximum(s.reference, 1e-300)))
+    crb = f"Cramer-Rao sd {rel:.1f}x the smallest error worth finding"
+    e = vehicle.environment
+    R = vehicle.body.radius
+    z = traj.pos_ned_m[:, 2]
+    w = np.abs(traj.nu[:, 2])
+    speed = np.linalg.norm(traj.nu[:, :3], axis=1)
+    imu_hz = 1.0 / traj.dt_s
+    why = None
+    if effect == "wall_proximity":
+        near = (e.floor_depth - z) < 0.3 + R
+        if not (near & (w > 0.05)).any():
+            why = f"no heave motion within 0.3 m of the floor ({e.floor_depth:.2f} m)"
+    elif effect == "surface_proximity":
+        if (z - e.surface_depth).min() > 1.5 * R:
+            why = f"never within {1.5 * R:.2f} m of the surface"
+    elif effect in ("linear_damping", "quadratic_damping", "thrust_inflow", "current"):
+        if speed.max() < 0.15:
+            why = f"speed never above 0.15 m/s (max {speed.max():.2f}): linear and quadratic damping inseparable"
+    elif effect in ("azimuth_transient", "servo_lag", "motor_lag", "sensor_delay"):
+        if imu_hz < 40:
+            why = f"IMU at {imu_hz:.0f} Hz: too slow for transients of tens of milliseconds"
+    return f"{why}; {crb}" if why else crb
+
+
+def _bias_finding(s, cal, n_fam) -> dict:
+    sd = decide.calibrated_sd(s, cal)
+    params = {"sensors.gyro_bias": [float(f"{v:.4g}") for v in s.theta[:3]],
+              "sensors.accel_bias": [float(f"{v:.4g}") for v in s.theta[3:]]}
+    std = {"sensors.gyro_bias": [float(f"{v:.2g}") for v in sd[:3]],
+           "sensors.accel_bias": [float(f"{v:.2g}") for v in sd[3:]]}
+    return {"effect": "imu_bias", "kind": "missing", "confidence": round(decide.confidence(s, cal, n_fam), 3),
+            "parameters": params, "std": std, "statistic": round(s.statistic, 1),
+            "threshold": round(cal.threshold["imu_bias"], 1),
+            "explanation": (f"the smoother's IMU bias states are {s.statistic / cal.threshold['imu_bias']:.1f}x "
+                            f"their calibrated threshold; {PHRASES['imu_bias']}: gyro "
+                            f"{_fmt(params['sensors.gyro_bias'])} rad/s, accel {_fmt(params['sensors.accel_bias'])} m/s^2")}
 
 
 def _split_pair(pf: Fit, a: Fit, b: Fit):
@@ -214,7 +359,7 @@ def _split_pair(pf: Fit, a: Fit, b: Fit):
     return fa, fb
 
 
-def _finding(f: Fit, vehicle: Vehicle, split, traj, res0, noise, first: bool, fits) -> dict:
+def _finding(f: Fit, vehicle: Vehicle, score, cal, n_fam: int) -> dict:
     c = f.candidate
     per = np.maximum(f.per_channel, 0.0)
     tot = per.sum()
@@ -236,15 +381,19 @@ def _finding(f: Fit, vehicle: Vehicle, split, traj, res0, noise, first: bool, fi
     explanation = (f"{' and '.join(axes) or 'the'} residual {PHRASES.get(c.effect, '')}; {verb} {what}"
                    + (f" with {ptxt}" if ptxt else "")
                    + f" explains {100 * explained:.0f} % of it on held-out data")
-    # confidence: Akaike weight of this candidate against the nominal model and the other candidates
-    aic = np.array([-(g.delta_holdout) + 2 * g.candidate.n_params for g in fits] + [0.0])
-    own = -(f.delta_holdout) + 2 * c.n_params
-    wts = np.exp(-0.5 * (aic - aic.min()))
-    conf = float(np.exp(-0.5 * (own - aic.min())) / wts.sum()) if first else float(min(1.0, explained + 0.5))
-    return {"effect": c.effect, "kind": c.kind, "confidence": round(min(max(conf, 0.0), 1.0), 3),
-            "parameters": params, "explanation": explanation,
-            "heldout_chi2_drop": round(f.delta_holdout, 1), "explained": round(explained, 3),
-            "bic": round(f.bic, 1), "axes": axes}
+    out = {"effect": c.effect, "kind": c.kind, "confidence": None, "parameters": params,
+           "explanation": explanation, "heldout_chi2_drop": round(f.delta_holdout, 1),
+           "explained": round(explained, 3), "bic": round(f.bic, 1), "axes": axes}
+    if score is not None and c.n_params and score.effect == c.effect:
+        sd = decide.calibrated_sd(score, cal)
+        out["std"] = c.parameters(sd, vehicle, deviations=True)
+        out["statistic"] = round(score.statistic, 1)
+        out["threshold"] = round(cal.threshold[c.effect], 1)
+    if score is not None:
+        out["confidence"] = round(decide.confidence(score, cal, n_fam), 3) if score.effect == c.effect else None
+    if out["confidence"] is None:  # the second of a pair: its own family's score
+        out["confidence"] = round(min(1.0, explained + 0.5), 3)
+    return out
 
 
 def _fmt(v):

@@ -181,7 +181,18 @@ def rotation_rows(q) -> np.ndarray:
     return R
 
 
-def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = None) -> Trajectory:
+@dataclass(frozen=True)
+class LeadIn:
+    """What came before a window cut from a longer recording: the commands of the seconds before
+    it (on the window's grid spacing, oldest first), so the actuators are mid-flight at its start,
+    and the smoother's state there (`estimate` layout; disturbance and biases zero)."""
+
+    command: np.ndarray  # (L, 3k)
+    x0: np.ndarray  # (estimate.NX,)
+
+
+def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = None,
+                lead: LeadIn | None = None) -> Trajectory:
     """The recording on the IMU grid and the rigid-body state estimated from it (module doc 1)."""
     corr = correction or SensorCorrection()
     t, dt = grid_for(rec)
@@ -201,9 +212,10 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
     # the state, estimated with the model (estimate.py): EKF + RTS over the nominal vehicle driven by
     # the commands, with a generalised-force disturbance and IMU biases
     p = model.pack_params(vehicle)
-    act = actuator_run_commands(command, dt, p, vehicle.n_units)
+    act = actuator_run_lead(command, dt, p, vehicle.n_units, lead)
     meas = estimate.measurements(rec, vehicle, t, d, corr.gyro_bias, corr.accel_bias)
-    est = estimate.smooth(meas, act, command, p, estimate.initial_state(meas, env.surface_depth))
+    x0 = lead.x0 if lead is not None and lead.x0 is not None else estimate.initial_state(meas, env.surface_depth)
+    est = estimate.smooth(meas, act, command, p, x0)
     xs = est.x
     pos = xs[:, 0:3].copy()
     quat = est.quat()
@@ -353,6 +365,15 @@ def _actuator_run(command, p, dt, substeps, xa0):
 def actuator_run(traj: Trajectory, p: np.ndarray, n_units: int, substeps: int = 2, command=None) -> np.ndarray:
     """(N, 3k + 20k) actuator and transient-filter states along the grid (module doc 2)."""
     return actuator_run_commands(traj.command if command is None else command, traj.dt_s, p, n_units, substeps)
+
+
+def actuator_run_lead(command: np.ndarray, dt: float, p: np.ndarray, n_units: int, lead=None,
+                      substeps: int = 2) -> np.ndarray:
+    """`actuator_run_commands` after the lead-in's commands (a window of a longer recording)."""
+    if lead is None or not len(lead.command):
+        return actuator_run_commands(command, dt, p, n_units, substeps)
+    m = len(lead.command)
+    return actuator_run_commands(np.concatenate([lead.command, command]), dt, p, n_units, substeps)[m:]
 
 
 def actuator_run_commands(command: np.ndarray, dt: float, p: np.ndarray, n_units: int, substeps: int = 2) -> np.ndarray:

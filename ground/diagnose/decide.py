@@ -1,0 +1,224 @@
+"""Decide with calibrated odds: a score test per candidate family, thresholds from the recording.
+
+Statistic (estimation before modelling, the two-step method of flight-test identification:
+Jategaonkar ch. 7; Stalford 1981). The smoother's disturbance d(t) (estimate.py) is what the
+nominal model misses, with its standard deviation s(t), which carries the state's uncertainty.
+What a candidate with parameters theta would add to the generalised force, F(t) dtheta, comes
+from the model itself (forward differences of the residual along the smoothed trajectory).
+On TRAINING samples DECORRELATE_S apart, weighted by 1/s, the Gauss-Newton step and the score
+(Lagrange-multiplier) statistic are
+
+    dtheta = (F^T F)^-1 F^T d,        S = d^T F (F^T F)^-1 F^T d        (Rao 1948)
+
+If the model were right and the weights exact, S ~ chi2(p). The held-out samples score the same
+step (held-out drop of the weighted squares).
+`imu_bias` is tested on the smoother's bias states instead: S = sum (b / sd(b))^2, p = 6.
+
+Calibration (parametric bootstrap, `null.py`): the same statistics on B recordings simulated
+from the nominal model under this recording's commands, with its estimated sensor noise. Each
+family's null statistics give its scale c_j (S / c_j ~ chi2(p_j)): its own mean of S / p, not
+below the median of the families' scales. A family is significant when S_j > c_j chi2_p^-1(1 - a), with
+a = min(1 %, 5 % / families) (Bonferroni: at most 1 % false alarms per family, 5 % per
+recording). The reported confidence is 1 - families x p_j, the recording-level probability that
+so large a statistic is not a false alarm.
+
+Cramer-Rao: the covariance of theta is c_j (J^T J)^-1 (Fisher information of the weighted
+residuals, inflated by the calibrated scale). A family is *not testable* on this recording when
+even its best-determined parameter has a standard deviation above half its reference magnitude
+(the smallest error worth finding): the data do not excite it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+ALPHA_FAMILY = 0.01
+ALPHA_RECORDING = 0.05
+UNTESTABLE_REL_SD = 0.5
+DECORRELATE_S = 0.5  # smoothed-disturbance samples this far apart are treated as independent
+
+
+@dataclass(frozen=True)
+class Score:
+    """One candidate's linearised test on one recording."""
+
+    effect: str
+    n_params: int
+    statistic: float  # S on training samples
+    holdout_drop: float  # linearised held-out chi-square drop of the same step
+    theta: np.ndarray  # theta0 + dtheta (unclipped)
+    sd: np.ndarray  # Cramer-Rao standard deviation per parameter (before calibration)
+    reference: np.ndarray = field(default=None)  # magnitude worth detecting, per parameter
+    design: tuple = field(default=None, repr=False)  # (J_tr, J_ho, y_tr, y_ho): weighted regression
+
+
+@dataclass(frozen=True)
+class Calibration:
+    draws: int
+    pooled_scale: float
+    scale: dict  # effect -> c_j
+    threshold: dict  # effect -> S threshold
+    alpha_family: float
+    null_max: dict  # effect -> largest null S seen
+
+
+def reference_magnitude(cand, vehicle) -> np.ndarray:
+    """The smallest parameter error worth finding, per parameter (module doc, 'not testable')."""
+    x0 = np.abs(np.asarray(cand.x0, float))
+    e = cand.effect
+    if e == "current":
+        return np.full(3, 0.05)  # m/s
+    if e == "sensor_delay":
+        return np.array([0.02])  # s
+    if e == "thruster_fault":
+        return np.full(len(x0), 0.2)
+    if e == "restoring_moment":
+        return np.full(3, 0.005)  # m of centre-of-buoyancy
+    if e == "buoyancy":
+        return 0.005 * x0  # 0.5 % of the volume
+    if cand.n_params == 0:
+        return np.array([0.5])  # the fraction of the effect switched on
+    return 0.2 * np.maximum(x0, 1e-9)
+
+
+def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
+    """`Score` of every candidate (module doc): the smoothed disturbance regressed on what each
+    candidate would add to the generalised force; parameterless candidates get one direction,
+    the effect switched on (lambda = 1)."""
+    from .replay import nominal_mass_diag
+
+    dist, sd = ev.disturbance()
+    M = nominal_mass_diag(vehicle)
+    step = max(1, int(round(DECORRELATE_S / ((split.train[1] - split.train[0]) * ev_dt(ev)))) if len(split.train) > 1 else 1)
+    tr, ho = split.train[::step], split.holdout[::step]
+    w = 1.0 / np.maximum(sd, 1e-9)
+    y_tr, y_ho = (dist[tr] * w[tr]).ravel(), (dist[ho] * w[ho]).ravel()
+    out = []
+    for c in cands:
+        if c.effect == "imu_bias":
+            continue
+        if c.n_params == 0:
+            cols = [ev.residual(c.apply((), ev.base)) - res0]
+            theta0 = np.zeros(1)
+        else:
+            theta0 = np.asarray(c.x0, float)
+            lo, hi = np.asarray(c.lower, float), np.asarray(c.upper, float)
+            scale = np.where(np.abs(theta0) > 0, np.maximum(np.abs(theta0), (hi - lo) * 0.01), (hi - lo) * 0.05)
+            cols = []
+            for j in range(c.n_params):
+                d = 0.01 * scale[j]
+                th = theta0.copy()
+                th[j] = th[j] + d if th[j] + d <= hi[j] else th[j] - d
+                cols.append((ev.residual(c.apply(th, ev.base)) - res0) / (th[j] - theta0[j]))
+        # what the candidate adds to the force, per unit of its parameters: -M dr/dtheta
+        F = [-(col[:, :6] * M) for col in cols]
+        J_tr = np.column_stack([(f[tr] * w[tr]).ravel() for f in F])
+        J_ho = np.column_stack([(f[ho] * w[ho]).ravel() for f in F])
+        A = J_tr.T @ J_tr
+        g = J_tr.T @ y_tr
+        ridge = 1e-12 * max(np.trace(A), 1e-300)
+        try:
+            Ainv = np.linalg.inv(A + ridge * np.eye(len(A)))
+        except np.linalg.LinAlgError:
+            Ainv = np.linalg.pinv(A)
+        dth = Ainv @ g
+        S = float(g @ Ainv @ g)
+        drop = float(y_ho @ y_ho - np.sum((y_ho - J_ho @ dth) ** 2))
+        sdp = np.sqrt(np.maximum(np.diag(Ainv), 0.0))
+        out.append(Score(c.effect, max(c.n_params, 1), max(S, 0.0), drop, theta0 + dth, sdp,
+                         reference_magnitude(c, vehicle), (J_tr, J_ho, y_tr, y_ho)))
+    return out
+
+
+def joint_gain(a: Score, b: Score) -> tuple[float, float]:
+    """(training, held-out) gain of adding candidate b to candidate a: the nested score test
+    S(a, b) - S(a) on the same weighted disturbance, and the held-out drop it adds."""
+    Ja, Jha, y, yh = a.design
+    Jb, Jhb, _, _ = b.design
+    J = np.column_stack([Ja, Jb])
+    Jh = np.column_stack([Jha, Jhb])
+    A = J.T @ J
+    g = J.T @ y
+    Ainv = np.linalg.pinv(A)
+    S = float(g @ Ainv @ g)
+    dth = Ainv @ g
+    drop = float(yh @ yh - np.sum((yh - Jh @ dth) ** 2))
+    return S - a.statistic, drop - a.holdout_drop
+
+
+def ev_dt(ev) -> float:
+    e = ev.evaluators[0] if hasattr(ev, "evaluators") else ev
+    return e.traj0.dt_s
+
+
+def bias_score(trajs, vehicle) -> Score:
+    """imu_bias from the smoother's bias states: inverse-variance mean over the segments."""
+    from .estimate import I_BG
+
+    num = np.zeros(6)
+    den = np.zeros(6)
+    for tr in trajs:
+        est = tr.estimate
+        b = est.x[-1, I_BG:I_BG + 6]  # constant states: the smoothed value is one number per segment
+        s = np.maximum(est.std[-1, I_BG:I_BG + 6], 1e-12)
+        num += b / s ** 2
+        den += 1.0 / s ** 2
+    b = num / den
+    sd = 1.0 / np.sqrt(den)
+    s = vehicle.sensors
+    nominal = np.concatenate([s.gyro_bias, s.accel_bias])
+    theta = nominal + b
+    ref = np.array([0.003] * 3 + [0.03] * 3)  # about one sigma of the reference IMU's white noise
+    return Score("imu_bias", 6, float(np.sum((b / sd) ** 2)), float("nan"), theta, sd, ref)
+
+
+def calibrate(null_scores: list[list[Score]], families: list[str]) -> Calibration:
+    """Per-family scale and threshold from the null draws (module doc)."""
+    n_fam = max(len(families), 1)
+    alpha = min(ALPHA_FAMILY, ALPHA_RECORDING / n_fam)
+    by: dict = {f: [] for f in families}
+    p_of: dict = {}
+    for draw in null_scores:
+        for s in draw:
+            if s.effect in by:
+                by[s.effect].append(s.statistic)
+                p_of[s.effect] = s.n_params
+    own_scale = {f: float(np.mean(vals)) / p_of[f] for f, vals in by.items() if vals}
+    pooled = float(np.median(list(own_scale.values()))) if own_scale else 1.0
+    scale, thr, nmax = {}, {}, {}
+    for f in families:
+        vals = by.get(f, [])
+        p = p_of.get(f, 1)
+        own = own_scale.get(f, pooled)
+        # a family's own scale, not below the median family's: eight draws estimate a mean of
+        # chi-square(1) to +-50 %, and a quiet family must not get a hair trigger
+        c = max(own, pooled, 1e-6)
+        scale[f] = c
+        thr[f] = c * float(chi2_dist.ppf(1.0 - alpha, p))
+        nmax[f] = float(max(vals)) if vals else float("nan")
+    return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax)
+
+
+def confidence(score: Score, cal: Calibration, n_families: int) -> float:
+    """1 - families x p-value of the calibrated statistic (recording-level, Bonferroni)."""
+    c = cal.scale.get(score.effect, cal.pooled_scale)
+    pval = float(chi2_dist.sf(score.statistic / c, score.n_params))
+    return max(0.0, 1.0 - n_families * pval)
+
+
+def calibrated_sd(score: Score, cal: Calibration) -> np.ndarray:
+    return score.sd * math.sqrt(cal.scale.get(score.effect, cal.pooled_scale))
+
+
+def testable(score: Score, cal: Calibration) -> bool:
+    """False when the family is not significant and even its best-determined parameter's sd
+    exceeds half its reference magnitude: its absence cannot be concluded."""
+    if score.statistic > cal.threshold.get(score.effect, float("inf")):
+        return True
+    sd = calibrated_sd(score, cal)
+    ref = np.maximum(np.asarray(score.reference, float), 1e-300)
+    return bool(np.min(sd / ref) <= UNTESTABLE_REL_SD)
