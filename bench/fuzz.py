@@ -260,7 +260,74 @@ def _recording_one(path: Path, data: bytes) -> bool:
         return True
     rec.summary()
     s = rec.skipped
-    return bool(s.skipped_bytes or s.bad_crc_packets or s.unknown_packets or s.non_monotonic or s.bad_records)
+    return bool(s.skipped_bytes or s.bad_crc_packets or s.unknown_packets or s.non_monotonic or s.bad_records
+                or s.out_of_range or s.bad_time)
+
+
+def _flight(n: int, gap_s: float, uptime_s: float):
+    """A tlog of n 100 Hz IMU samples (+ pressure and uint32-clocked SERVO_OUTPUT_RAW every 2nd)
+    from vehicle time uptime_s, jumping by gap_s halfway: the truth the damage target checks
+    against. Returns (bytes, first time, last time)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    link = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    out = bytearray()
+    times = [uptime_s + i * 0.01 + (gap_s if i >= n // 2 else 0.0) for i in range(n)]
+    for i, t in enumerate(times):
+        stamp = (1_700_000_000_000_000 + int(round(t * 1e6))).to_bytes(8, "big")
+        msgs = [mav.MAVLink_highres_imu_message(int(round(t * 1e6)), 0.1, 0.2, -9.8, 0.01, 0.02, 0.03,
+                                                0, 0, 0, 0, 0, 0, 0, 0b111111, 0)]
+        if i % 2 == 0:
+            msgs.append(mav.MAVLink_scaled_pressure2_message(int(round(t * 1e3)) % 2 ** 32, 1013.25, 0, 2000, 0))
+            msgs.append(mav.MAVLink_servo_output_raw_message(int(round(t * 1e6)) % 2 ** 32, 0, *([1500] * 16)))
+        for m in msgs:
+            out += stamp + m.pack(link)
+    return bytes(out), times[0], times[-1]
+
+
+_FLIGHTS: dict = {}
+
+
+def _damage_one(path: Path, data: bytes) -> bool:
+    """Issue 15: the fuzzer's bytes choose a flight (length, gap, uptime past a uint32 wrap) and
+    where bits flip in it (up to 1 % of its bytes). Every packet whose own bytes are intact must
+    be read and no stream may leave the true time span; a failed check is a crash."""
+    import numpy as np
+
+    from ground.recording import RecordingError, read_recording, scan_packets
+
+    if len(data) < 4:
+        return True
+    n = 50 + data[0] * 2
+    gap_s = (0.0, 0.5, 2.0, 1e5, 4e6)[data[1] % 5]
+    uptime_s = (0.0, 4290.0, 4294.9, 9000.0)[data[2] % 4]
+    key = (n, gap_s, uptime_s)
+    if key not in _FLIGHTS:
+        clean, t0, t1 = _flight(n, gap_s, uptime_s)
+        buf, off, plen, *_ = scan_packets(clean)
+        hdr = np.where(buf[off - 10] == 0xFD, 10, 6)
+        _FLIGHTS[key] = (clean, t0, t1, off, off - hdr, off + plen + 2)
+    clean, t0, t1, off, start, end = _FLIGHTS[key]
+    body = bytearray(clean)
+    flips = data[3:3 + 3 * (len(clean) // 100)]
+    hit = np.zeros(len(body) + 1, np.int64)
+    for j in range(0, len(flips) - 2, 3):
+        i = (flips[j] << 8 | flips[j + 1]) * len(body) // 65536
+        body[i] ^= 1 << (flips[j + 2] % 8)
+        hit[i] = 1
+    cum = np.concatenate([[0], np.cumsum(hit)])
+    intact = set(off[(cum[end] - cum[start]) == 0].tolist())
+    lost = intact - set(scan_packets(bytes(body))[1].tolist())
+    assert not lost, f"{len(lost)} intact packets lost"
+    path.write_bytes(bytes(body))
+    try:
+        rec = read_recording(path)
+    except RecordingError:
+        assert not intact, "refused with intact packets"
+        return True
+    for name, st in rec.streams.items():
+        assert t0 - 1e-6 <= st.time_s[0] and st.time_s[-1] <= t1 + 1e-6, f"{name} outside the true span"
+    return bool(rec.skipped.bad_crc_packets or rec.skipped.skipped_bytes)
 
 
 def _text_one(parse, error):
@@ -312,6 +379,8 @@ def _seeds(target: str) -> list[bytes]:
         return [(SHARED / "data/ardusub/small.tlog").read_bytes()[:20_000]]
     if target == "dataflash":
         return [(SHARED / "data/ardusub/small.BIN").read_bytes()[:20_000]]
+    if target == "damage":
+        return [bytes([100, 3, 2]) + bytes(range(256)) * 2, bytes([10, 0, 0]) + b"\x00" * 30]
     if target == "vehicle":
         return [DEFAULT_VEHICLE.read_bytes()]
     if target == "commands":
@@ -333,6 +402,7 @@ TARGETS = {
     "sitl": (_sitl_setup, _sitl_one),
     "tlog": (_file_setup(".tlog"), _recording_one),
     "dataflash": (_file_setup(".bin"), _recording_one),
+    "damage": (_file_setup(".tlog"), _damage_one),
     "vehicle": (lambda: None, None),
     "commands": (lambda: None, None),
     "command_line": (lambda: None, None),

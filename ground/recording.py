@@ -116,7 +116,7 @@ class Skipped:
     unknown_packets: int = 0  # good framing, message id not in the dialect (CRC not checkable)
     non_monotonic: dict = field(default_factory=dict)  # stream -> samples dropped
     gaps: tuple = ()  # (stream, t0_s, t1_s) where a stream stops for > 5 periods
-    bad_records: int = 0  # dataflash records of a used type lacking a column or with a non-number
+    bad_records: int = 0  # dataflash: damaged FMT records + records of a used type lacking a column or with a non-number
     out_of_range: dict = field(default_factory=dict)  # stream -> samples with a NaN, inf or impossible value
     bad_time: dict = field(default_factory=dict)  # stream -> samples at an impossible or out-of-line time
 
@@ -638,6 +638,7 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
             valid = _finite_within(2.0, q) & (np.abs(qn - 1.0) < 0.1) & _finite_within(POS_MAX_M, pos)
         t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "mocap", tally, valid)
         mocap = MocapStream(_frozen(t), _frozen(q[keep]), _frozen(pos[keep]))
+    imu, pressure, servo, attitude, esc, mocap = _trim_tails((imu, pressure, servo, attitude, esc, mocap), tally)
     skipped_info = Skipped(int(bad_crc), int(skipped), int(truncated), int(unknown), tally.nonmono,
                            tuple(tally.gaps), 0, tally.out_of_range, tally.bad_time)
     return Recording(str(path), "tlog", counts, skipped_info, imu, pressure, servo, attitude, esc,
@@ -790,6 +791,48 @@ def _monotonic(t, stream: str, tally: "_Tally", valid=None):
     return tk, keep
 
 
+STREAM_NAMES = ("imu", "pressure", "servo", "attitude", "esc", "mocap")
+
+
+def _trim_tails(streams: tuple, tally: _Tally) -> tuple:
+    """At most 4 samples at a stream's start or end lying more than 1 s outside the time span of
+    every other stream (a flipped bit in the last stamps: nothing after them says they are out of
+    line) are dropped and counted in `bad_time`; the gaps to them go too."""
+    out = list(streams)
+    for _ in range(3):  # a stream's own damaged tail widened the others' span: once more after it goes
+        before = list(out)
+        out = list(_trim_once(tuple(out), tally))
+        if all(a is b for a, b in zip(before, out)):
+            break
+    return tuple(out)
+
+
+def _trim_once(streams: tuple, tally: _Tally) -> tuple:
+    import dataclasses
+
+    named = [(n, s) for n, s in zip(STREAM_NAMES, streams) if s is not None and len(s.time_s)]
+    if len(named) < 2:
+        return streams
+    out = list(streams)
+    for name, s in named:
+        others = [o.time_s for m, o in named if m != name]
+        lo, hi = min(float(o[0]) for o in others), max(float(o[-1]) for o in others)
+        t = s.time_s
+        i0 = int(np.searchsorted(t, lo - 1.0, side="left"))  # t[:i0] before the others began
+        i1 = int(np.searchsorted(t, hi + 1.0, side="right"))  # t[i1:] after they ended
+        i0 = i0 if i0 <= 4 else 0
+        i1 = i1 if len(t) - i1 <= 4 else len(t)
+        if (i0, i1) == (0, len(t)) or i1 - i0 < 5:
+            continue
+        tally.add(tally.bad_time, name, i0 + len(t) - i1)
+        t0, t1 = float(t[i0]), float(t[i1 - 1])
+        tally.gaps[:] = [g for g in tally.gaps if g[0] != name or (g[1] >= t0 and g[2] <= t1)]
+        out[STREAM_NAMES.index(name)] = dataclasses.replace(s, **{
+            f.name: _frozen(getattr(s, f.name)[i0:i1]) for f in dataclasses.fields(s)
+            if isinstance(getattr(s, f.name), np.ndarray)})
+    return tuple(out)
+
+
 def _finite_within(limit, *cols) -> np.ndarray:
     """True where every column is finite and within +-limit."""
     ok = np.ones(len(cols[0]) if len(cols) else 0, dtype=bool)
@@ -885,11 +928,50 @@ def _quiet():
             os.close(fd)
 
 
+def _damaged_fmts(data: bytes) -> list:
+    """Offsets of FMT records (0xA3 0x95 0x80, 89 bytes) whose format string holds a character
+    DFReader has no type for: one such record (a flipped bit) made DFReader refuse the whole log."""
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+    ok = set(FORMAT_TO_STRUCT)
+    out = []
+    i = data.find(b"\xa3\x95\x80")
+    while 0 <= i <= len(data) - 89:
+        fmt = data[i + 9:i + 25].split(b"\0", 1)[0].decode("latin-1")
+        if any(c not in ok for c in fmt):
+            out.append(i)
+        i = data.find(b"\xa3\x95\x80", i + 3)
+    return out
+
+
 def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
+    import tempfile
+
+    from pymavlink import DFReader
+
+    damaged = _damaged_fmts(data)
+    read_path = str(path)
+    tmp = None
+    if damaged:  # read a copy whose damaged FMT records do not frame (their bytes are skipped)
+        fixed = bytearray(data)
+        for i in damaged:
+            fixed[i + 2] = 0x00
+        tmp = tempfile.NamedTemporaryFile(suffix=".bin", delete=False)
+        tmp.write(fixed)
+        tmp.close()
+        read_path = tmp.name
+    try:
+        return _read_dataflash_file(path, read_path, data, len(damaged))
+    finally:
+        if tmp is not None:
+            os.unlink(tmp.name)
+
+
+def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int) -> Recording:
     from pymavlink import DFReader
 
     try:
-        log = DFReader.DFReader_binary(str(path), zero_time_base=False)
+        log = DFReader.DFReader_binary(read_path, zero_time_base=False)
     except Exception as exc:  # DFReader raises bare exceptions on unusable headers
         raise RecordingError(f"{path}: not a readable dataflash log: {exc}") from exc
     rows: dict = {"IMU": [], "BARO": [], "RCOU": [], "ATT": [], "ESC": []}
@@ -909,7 +991,7 @@ def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
         if name in rows:
             rows[name].append(m.to_dict())
     tally = _Tally()
-    bad = [0]
+    bad = [bad_fmts]  # damaged FMT records, then records of a used type that cannot be read
     imu = pressure = servo = attitude = esc = None
     # A damaged FMT record can rename a type's columns or change their types: a record without
     # the columns a stream needs, or with a value that is not a number, is counted, not used.
@@ -950,6 +1032,7 @@ def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
     if not counts:
         raise RecordingError(f"{path}: no dataflash records found")
     skipped_bytes = max(int(len(data) - used_bytes), 0)
+    imu, pressure, servo, attitude, esc = _trim_tails((imu, pressure, servo, attitude, esc), tally)
     skipped_info = Skipped(0, skipped_bytes, 0, 0, tally.nonmono, tuple(tally.gaps), bad[0],
                            tally.out_of_range, tally.bad_time)
     return Recording(str(path), "dataflash", counts, skipped_info, imu, pressure, servo, attitude, esc)
