@@ -164,6 +164,97 @@ def _onboard_one(st, data: bytes) -> bool:
     return loop.stats.rejected_inputs + loop.stats.ignored_imu + loop.link.bad_packets > before
 
 
+SENSOR_READS = ("HIGHRES_IMU", "RAW_IMU", "SCALED_PRESSURE2", "ATTITUDE", "SYSTEM_TIME", "ESC_TELEMETRY_1_TO_4",
+                "ACTUATOR_OUTPUT_STATUS")
+
+
+def _peers_setup():
+    """A robot (OnboardLoop) with a main udpin link and a ground udpin link, each locked to its peer
+    (an autopilot socket, a station socket), and an intruder socket: real UDP on 127.0.0.1."""
+    import socket
+
+    import numpy as np
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from onboard import mavlink_codec as codec
+    from onboard.link import Link
+    from onboard.loop import OnboardLoop, VehicleClock
+    from onboard.vehicle import load_vehicle
+
+    v = load_vehicle()
+    # the peers hold their links however long the fuzzer runs between their datagrams (a silent
+    # peer's hand-over after PEER_TIMEOUT_S is tests/test_link.py's)
+    main, ground = (Link("udpin:127.0.0.1:0", peer_timeout_s=1e9) for _ in range(2))
+    loop = OnboardLoop(v, main, VehicleClock(block_s=0.0), ground=ground)
+    socks = {}
+    for name in ("autopilot", "station", "intruder"):
+        socks[name] = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        socks[name].bind(("127.0.0.1", 0))
+        socks[name].setblocking(False)
+    hello = lambda src, comp: bytes(codec.heartbeat().pack(mavlink.MAVLink(None, src, comp)))  # noqa: E731
+    socks["autopilot"].sendto(hello(1, 1), main.local_address)
+    socks["station"].sendto(hello(255, 190), ground.local_address)
+    from onboard.sensors import ImuSample  # the autopilot's first sample starts the clock (poll then never waits)
+
+    imu = codec.encode_imu(ImuSample(0.0, (0.0, 0.0, -9.81), (0.0, 0.0, 0.0)))
+    socks["autopilot"].sendto(bytes(imu.pack(mavlink.MAVLink(None, 1, 1))), main.local_address)
+    for lk in (main, ground):
+        m = lk.recv(0.5)
+        while m is not None:
+            loop.handle(m, "main" if lk is main else "ground")
+            m = lk.recv(0.1)
+    senders = {s: mavlink.MAVLink(None, srcSystem=s, srcComponent=1) for s in (1, 255, 7, 99)}
+    return {"v": v, "loop": loop, "main": main, "ground": ground, "socks": socks, "senders": senders, "np": np}
+
+
+def _peers_one(st, data: bytes) -> bool:
+    """Datagrams from the autopilot, the station or an intruder, to either link, holding junk or any
+    sensor or ground message from any system. Properties: every intruder datagram is counted and
+    never read; sensor data from anyone but the autopilot (system 1 on the main link) never moves
+    the loop's clock or IMU ordering; the command stays inside the vehicle's limits."""
+    import atheris
+
+    fdp = atheris.FuzzedDataProvider(data)
+    loop, main, ground, socks, np, v = st["loop"], st["main"], st["ground"], st["socks"], st["np"], st["v"]
+    foreign0 = main.foreign_datagrams + ground.foreign_datagrams
+    time0 = (loop.clock.now(), loop._last_imu_stamp)
+    refused0 = loop.stats.security.sensors_refused + loop.stats.rejected_inputs
+    intruded, autopilot_sensors = 0, False
+    for _ in range(fdp.ConsumeIntInRange(1, 4)):
+        who = ("autopilot", "station", "intruder")[fdp.ConsumeIntInRange(0, 2)]
+        to = main if who == "autopilot" else ground if who == "station" else (main, ground)[fdp.ConsumeIntInRange(0, 1)]
+        sysid = (1, 255, 7, 99)[fdp.ConsumeIntInRange(0, 3)]
+        if fdp.ConsumeBool():
+            payload = fdp.ConsumeBytes(fdp.ConsumeIntInRange(1, 300))
+        else:
+            names = SENSOR_READS if fdp.ConsumeBool() else ONBOARD_READS
+            payload = _packets(fdp, names, _Sender(st["senders"][sysid]), 2)
+            autopilot_sensors |= who == "autopilot" and sysid == 1
+        if not payload:
+            continue
+        socks[who].sendto(payload, to.local_address)
+        intruded += who == "intruder"
+    quiet = 0
+    for _ in range(40):  # read and handle what came (bounded); a poll that steps reads nothing
+        before = main.bytes_in + ground.bytes_in + main.foreign_datagrams + ground.foreign_datagrams
+        loop.poll()
+        idle = main.bytes_in + ground.bytes_in + main.foreign_datagrams + ground.foreign_datagrams == before \
+            and not loop._tick_due() and not main._ready and not ground._ready
+        quiet = quiet + 1 if idle else 0
+        if quiet >= 2:
+            break
+    if main.foreign_datagrams + ground.foreign_datagrams != foreign0 + intruded:
+        raise AssertionError("an intruder's datagram was read (or a peer's counted as foreign)")
+    if not autopilot_sensors and (loop.clock.now(), loop._last_imu_stamp) != time0:
+        raise AssertionError(f"sensor data from another party moved the time: {time0} -> {loop.clock.now()}")
+    c = np.asarray(loop.command, dtype=float)
+    k = v.n_units
+    if not (np.all(np.isfinite(c)) and np.all(c[:k] >= -1e-9) and np.all(c[:k] <= v.thruster.n_max + 1e-9)
+            and np.all(np.abs(c[k:]) <= v.servo.angle_limit + 1e-9)):
+        raise AssertionError(f"command outside the vehicle's limits: {c}")
+    return intruded > 0 or loop.stats.security.sensors_refused + loop.stats.rejected_inputs > refused0
+
+
 GROUND_READS = ("HEARTBEAT", "ATTITUDE", "NAMED_VALUE_FLOAT", "DEBUG_FLOAT_ARRAY", "SERVO_OUTPUT_RAW",
                 "SCALED_PRESSURE2", "LOCAL_POSITION_NED", "VFR_HUD", "SYS_STATUS", "COMMAND_ACK", "STATUSTEXT")
 
@@ -387,6 +478,8 @@ def _seeds(target: str) -> list[bytes]:
         return [(ROOT / "onboard/data/demo_commands.csv").read_bytes()]
     if target == "command_line":
         return [b"depth 1.5 yaw 90", b"rate ATTITUDE 10", b"manual 100 0 500 0", b"mode guided"]
+    if target == "peers":  # the fuzzed data provider's choices: long enough for four datagrams of messages
+        return [random.Random(i).randbytes(2000) for i in range(4)]
     if target == "sitl":
         from hil.json_sitl import pack_servo_packet
 
@@ -397,6 +490,7 @@ def _seeds(target: str) -> list[bytes]:
 TARGETS = {
     "link": (_link_setup, _link_one),
     "onboard": (_onboard_setup, _onboard_one),
+    "peers": (_peers_setup, _peers_one),
     "ground": (_ground_setup, _ground_one),
     "endpoint": (_endpoint_setup, _endpoint_one),
     "sitl": (_sitl_setup, _sitl_one),

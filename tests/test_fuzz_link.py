@@ -224,3 +224,50 @@ def test_garbage_costs_less_than_good_packets():
     good = good * (len(garbage) // len(good) + 1)
     ratio = (_feed_seconds(Link, garbage) / len(garbage)) / (_feed_seconds(Link, good) / len(good))
     assert ratio < 0.35, ratio
+
+
+# -- hostile peers: a second sender on a udpin link (issue 15) -------------------------------------------
+
+@settings(max_examples=60, deadline=timedelta(seconds=30))
+@given(plan=st.lists(st.tuples(st.sampled_from(["a", "b"]),
+                               st.one_of(st.binary(min_size=1, max_size=300).filter(lambda b: not set(b) & {0xFD, 0xFE}),
+                                         st.integers(0, 5))),
+                     min_size=1, max_size=12))
+def test_a_udpin_link_reads_and_answers_only_its_peer(plan):
+    """Two senders, a and b, each sending junk (no start marker, so it can never pose as a packet)
+    or good packets, in any order. The first to send a good packet becomes the peer; from then on
+    only its packets are delivered, in order; every other datagram is counted as foreign, before
+    the lock too (it proved nothing); and what the link sends reaches the peer alone."""
+    good = _packets(6, seed=3)
+    with Link("udpin:127.0.0.1:0") as server, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as a, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b:
+        socks = {"a": a, "b": b}
+        for s in socks.values():
+            s.bind(("127.0.0.1", 0))
+            s.setblocking(False)
+        peer, expected, foreign = None, [], 0
+        for who, what in plan:
+            data = good[what] if isinstance(what, int) else what
+            socks[who].sendto(data, server.local_address)
+            if peer is None and isinstance(what, int):
+                peer = who
+            if who == peer and isinstance(what, int):
+                expected.append(data)
+            elif who != peer or peer is None:
+                foreign += 1
+        got, deadline = [], time.monotonic() + 3.0
+        while time.monotonic() < deadline and len(got) < len(expected):
+            m = server.recv(0.05)
+            if m is not None:
+                got.append(bytes(m.get_msgbuf()))
+        assert server.recv(0.05) is None
+        assert got == expected
+        assert server.stats()["foreign_datagrams"] == foreign
+        assert server.has_peer == (peer is not None)
+        server.send(mavlink.MAVLink_heartbeat_message(12, 0, 0, 0, 0, 3))
+        for who, s in socks.items():
+            try:
+                answered = s.recv(65535)
+            except BlockingIOError:
+                answered = None
+            assert (answered is not None) == (who == peer), who

@@ -67,12 +67,16 @@ class Rig:
         self.autopilot.write_raw(data)
 
     def pump(self, polls: int = 60) -> None:
-        """poll() until the links are quiet (bounded: a hang shows as the example's deadline)."""
+        """poll() until two polls in a row read nothing (a poll that steps reads nothing itself;
+        bounded: a hang shows as the example's deadline)."""
+        quiet = 0
         for _ in range(polls):
-            before = self.link.bytes_in + self.ground_link.bytes_in
+            before = self.link.bytes_in + self.ground_link.bytes_in + self.loop.link_foreign()
             self.loop.poll()
-            quiet = self.link.bytes_in + self.ground_link.bytes_in == before
-            if quiet and not self.loop._tick_due() and not self.link._ready and not self.ground_link._ready:
+            idle = (self.link.bytes_in + self.ground_link.bytes_in + self.loop.link_foreign() == before
+                    and not self.loop._tick_due() and not self.link._ready and not self.ground_link._ready)
+            quiet = quiet + 1 if idle else 0
+            if quiet >= 2:
                 break
 
     def close(self) -> None:

@@ -71,11 +71,15 @@ class Robot:
         self.t = 0.0
 
     def pump(self, polls: int = 80) -> None:
+        """poll() until two polls in a row read nothing (a poll that steps reads nothing itself)."""
+        quiet = 0
         for _ in range(polls):
-            before = self.main.bytes_in + self.ground.bytes_in
+            before = self.main.bytes_in + self.ground.bytes_in + self.loop.link_foreign()
             self.loop.poll()
-            quiet = self.main.bytes_in + self.ground.bytes_in == before
-            if quiet and not self.loop._tick_due() and not self.main._ready and not self.ground._ready:
+            idle = (self.main.bytes_in + self.ground.bytes_in + self.loop.link_foreign() == before
+                    and not self.loop._tick_due() and not self.main._ready and not self.ground._ready)
+            quiet = quiet + 1 if idle else 0
+            if quiet >= 2:
                 return
 
     def fly(self, n: int = 5) -> None:
