@@ -13,9 +13,10 @@ running through link loss, garbage and truncated packets: the station says what 
 
 The default link listens on 127.0.0.1 only (the HIL and `jetloop onboard` on this machine): a
 vehicle on another machine is named explicitly, best by the interface it is reached on
-(`--link udpin:192.168.2.1:14550` on a BlueROV tether) rather than every interface (0.0.0.0),
-because a udpin link answers whoever spoke last, so any host that can reach the port would
-receive the ground's (signed) commands and could feed the view false telemetry.
+(`--link udpin:192.168.2.1:14550` on a BlueROV tether) rather than every interface (0.0.0.0):
+a udpin link keeps the first sender of valid MAVLink as its peer (onboard.link), but until the
+vehicle speaks, or after it is silent for 5 s, any host that can reach the port could become
+that peer, receive the ground's (signed) commands and feed the view false telemetry.
 """
 
 from __future__ import annotations
