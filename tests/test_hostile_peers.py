@@ -318,3 +318,91 @@ def test_onboard_refuses_a_tlog_that_holds_no_mavlink(tmp_path, capsys, content)
     assert len(err) == 1 and err[0].startswith(f"jetloop onboard: link tlog:{path}: ")
     assert ("the recording is empty" if not content else "no MAVLink packet in its first") in err[0]
     assert "Traceback" not in err[0]
+
+
+# -- jetloop onboard itself ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("args, words", [
+    (["--autopilot", "255"], "--autopilot '255': system 255 is a ground system"),
+    (["--autopilot", "1:300"], "--autopilot '1:300': expected SYS[:COMP]"),
+    (["--ground-peer", "127.0.0.1:9"], "--ground-peer needs --ground udpin:HOST:PORT"),
+    (["--peer", "127.0.0.1:0"], "peer '127.0.0.1:0': expected HOST:PORT"),
+])
+def test_onboard_peer_and_autopilot_options_are_checked_in_one_line(capsys, args, words):
+    from ground.cli import main
+
+    assert main(["onboard", "--link", "udpin:127.0.0.1:0", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+
+
+@pytest.mark.slow
+def test_the_adversarial_run_against_the_jetloop_onboard_process(tmp_path):
+    """The issue's attack on the real process: `jetloop onboard --link udpout:PLANT --ground
+    udpin:G --key K`, a signing plant streaming IMU at 100 Hz, a signing station that arms it,
+    and one unsigned HIGHRES_IMU from system 99 stamped 1e12 us sent to G. The robot stays armed,
+    without failsafe, and its exit lines count the intruder on the ground link."""
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from conftest import free_udp_port
+
+    keyfile = tmp_path / "robot.key"
+    keyfile.write_text(KEY.hex())
+    g = free_udp_port()
+    plant = Link("udpin:127.0.0.1:0", 1, 1)
+    enable_signing(plant.mav, KEY)
+    proc = subprocess.Popen([sys.executable, "-m", "ground.cli", "onboard", "--link",
+                             f"udpout:127.0.0.1:{plant.local_address[1]}", "--ground", f"udpin:127.0.0.1:{g}",
+                             "--key", keyfile, "--realtime"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    station = Link(f"udpout:127.0.0.1:{g}", 255, 190)
+    enable_signing(station.mav, KEY)
+    stop = threading.Event()
+
+    def stream():  # the autopilot's IMU at 100 Hz, on its own time since boot
+        t0 = time.monotonic()
+        while not stop.is_set():
+            plant.send(imu(time.monotonic() - t0))
+            plant.recv(0.0)
+            time.sleep(0.01)
+
+    streamer = threading.Thread(target=stream, daemon=True)
+    streamer.start()
+    seen = {}
+
+    def telemetry(seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            m = station.recv(0.1)
+            if m is not None and m.get_type() == "NAMED_VALUE_FLOAT":
+                seen[m.name] = m.value
+
+    attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        deadline = time.monotonic() + 300  # the first start compiles the model
+        while time.monotonic() < deadline and seen.get("armed") != 1.0:
+            station.send(arm_command(True))
+            telemetry(0.5)
+        assert seen.get("armed") == 1.0, seen
+        attacker.sendto(wire(hostile_imu(), 99), ("127.0.0.1", g))
+        seen.clear()
+        telemetry(1.5)  # five IMU timeouts' worth
+        assert (seen.get("armed"), seen.get("failsafe"), seen.get("link_foe")) == (1.0, 0.0, 1.0), seen
+    finally:
+        stop.set()
+        streamer.join(5)
+        attacker.close()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            out = proc.communicate(timeout=60)[0]
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out = proc.communicate()[0]
+        plant.close()
+        station.close()
+    line = next(x for x in out.splitlines() if x.startswith(f"jetloop onboard: ground udpin:127.0.0.1:{g}:"))
+    assert "foreign_datagrams 1" in line, line
+    assert "failsafes 0" in next(x for x in out.splitlines() if "steps, step median" in x)
