@@ -13,6 +13,9 @@ yaw in MAV_FRAME_LOCAL_NED; body velocity in a body frame, or NED velocity rotat
 estimated yaw), MANUAL_CONTROL (joystick: surge, sway, heave and yaw-rate demands), COMMAND_LONG
 (MAV_CMD_COMPONENT_ARM_DISARM; MAV_CMD_DO_SET_MODE, custom mode in param2), answered with
 COMMAND_ACK. Anything that cannot be decoded (NaN, wrong type) is counted and ignored.
+Every message first passes `CommandGate.admit(msg, link)` (onboard.signing): sensor data counts
+only from the autopilot on the main link, with a key every message must be signed; and a sensor
+stamp far from the stream's time is held by `StampGuard` until the stream confirms it (issue 15).
 
 Outputs every control tick: HIL_ACTUATOR_CONTROLS (jets 0..1, azimuths then elevations -1..1;
 `output="hil"`) and SERVO_OUTPUT_RAW (the PWM of the vehicle's [pwm] table; with `output="pwm"`
