@@ -38,6 +38,9 @@ def configure(parser) -> None:
     parser.add_argument("--mission", choices=("none", "demo"), default="none",
                         help="inject the demo mission's ground setpoints (arm, dive, yaw, forward, surface)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s of vehicle time")
+    parser.add_argument("--peer", default=None, metavar="HOST:PORT",
+                        help="with --link udpin: the only controller read and answered (default: the first that "
+                             "speaks valid MAVLink, until silent for 5 s)")
     parser.add_argument("--key", default=None, metavar="KEYFILE",
                         help="sign everything sent with this MAVLink 2 key (32 raw bytes or 64 hex digits), as an "
                              "autopilot with signing does: for `jetloop onboard --key`, which refuses unsigned input")
@@ -83,7 +86,7 @@ def run(args) -> int:
         return 2
     conn = args.link or "udpin:127.0.0.1:14560"
     try:
-        link = Link(conn, source_system=1, source_component=1)
+        link = Link(conn, source_system=1, source_component=1, peer=getattr(args, "peer", None))
     except LinkError as exc:
         print(f"jetloop hil: {exc}", file=sys.stderr)
         return 2

@@ -106,3 +106,11 @@ def test_jetloop_hil_key_file_errors_are_one_line(tmp_path, capsys):
     assert main(["hil", "--key", str(bad), "--link", "udpin:127.0.0.1:0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"jetloop hil: key file {bad}: expected 32 raw bytes or 64 hex digits, got 3 bytes"]
+
+
+def test_jetloop_hil_peer_is_checked_in_one_line(capsys):
+    from ground.cli import main
+
+    assert main(["hil", "--link", "udpout:127.0.0.1:9", "--peer", "127.0.0.1:9"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "jetloop hil: link 'udpout:127.0.0.1:9': a fixed peer applies to udpin links only"]
