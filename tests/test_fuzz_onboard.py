@@ -23,7 +23,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from onboard import mavlink_codec as codec
 from onboard.link import Link
-from onboard.loop import IMU_RANK, OnboardLoop, VehicleClock, arm_command
+from onboard.loop import IMU_RANK, LoopConfig, OnboardLoop, VehicleClock, arm_command
 from onboard.sensors import AttitudeSample, ImuSample, PressureSample
 from test_fuzz_messages import hostile, hostile_any
 
@@ -52,14 +52,20 @@ class Rig:
     """An onboard loop on a real udpin link, an autopilot (system 1) and a ground (255) sending to it
     through the autopilot's socket (the link's one peer, as a router forwards a ground's packets)."""
 
-    def __init__(self, vehicle):
+    def __init__(self, vehicle, key: bytes | None = None):
         self.link = Link("udpin:127.0.0.1:0")
         self.ground_link = Link("udpin:127.0.0.1:0")  # the robot's --ground link, a station behind it
-        self.loop = OnboardLoop(vehicle, self.link, VehicleClock(block_s=0.005), ground=self.ground_link)
+        self.loop = OnboardLoop(vehicle, self.link, VehicleClock(block_s=0.005), LoopConfig(signing_key=key),
+                                ground=self.ground_link)
         port = self.link.local_address[1]
         self.autopilot = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
         self.ground = Link(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
         self.station = Link(f"udpout:127.0.0.1:{self.ground_link.local_address[1]}", 255, 190)
+        if key is not None:  # the autopilot and the ground sign, as they must for a robot with a key
+            from onboard.signing import enable_signing
+
+            for lk in (self.autopilot, self.ground, self.station):
+                enable_signing(lk.mav, key)
 
     def send(self, msgs, sender=None) -> None:
         sender = sender or self.autopilot
@@ -86,13 +92,13 @@ class Rig:
 
 @pytest.fixture(scope="module")
 def rigs(vehicle):
-    """rigs() -> a fresh Rig (the previous one is closed: one example, one loop)."""
+    """rigs(key=None) -> a fresh Rig (the previous one is closed: one example, one loop)."""
     made = []
 
-    def make():
+    def make(key=None):
         while made:
             made.pop().close()
-        made.append(Rig(vehicle))
+        made.append(Rig(vehicle, key))
         return made[-1]
     yield make
     while made:
@@ -107,8 +113,8 @@ def _check_command(loop, vehicle) -> None:
     assert np.all(np.abs(c[k:]) <= vehicle.servo.angle_limit + 1e-9)
 
 
-def _armed_rig(rigs):
-    rig = rigs()
+def _armed_rig(rigs, key=None):
+    rig = rigs(key)
     rig.send(_good(0.01))
     rig.pump()
     rig.send([arm_command(True)], rig.ground)
@@ -257,4 +263,28 @@ def test_a_foreign_system_sending_sensor_data_changes_nothing(rigs, vehicle, msg
     ignored = loop.stats.ignored_imu
     _fly(rig, [], from_ground=False)
     assert loop.stats.ignored_imu == ignored and not loop.failsafe_active and loop.armed
+    _check_command(loop, vehicle)
+
+
+KEY = bytes(range(32))
+
+
+@FUZZ
+@given(msgs=st.lists(hostile_any(SENSORS + GROUND), min_size=1, max_size=6), sysid=st.sampled_from([1, 255, 42]),
+       on_ground_link=st.booleans())
+def test_with_a_key_no_unsigned_message_changes_anything(rigs, vehicle, msgs, sysid, on_ground_link):
+    """With signing on, any sensor, feedback, setpoint or command message, unsigned, from the
+    autopilot's or the ground's ids or another's, on either link: each is counted as unsigned and
+    none changes the time, the IMU ordering, the setpoint, the mode or the arming."""
+    rig = _armed_rig(rigs, KEY)
+    loop = rig.loop
+    state = lambda: (loop.clock.now(), loop._last_imu_stamp, loop.setpoint, loop.mode, loop.armed)  # noqa: E731
+    before, unsigned = state(), loop.stats.security.unsigned
+    mav = mavlink.MAVLink(None, sysid, 1)
+    (rig.station if on_ground_link else rig.autopilot).write_raw(b"".join(bytes(m.pack(mav)) for m in msgs))
+    rig.pump()
+    assert loop.stats.security.unsigned == unsigned + len(msgs)
+    assert state() == before
+    _fly(rig, [], from_ground=False)
+    assert not loop.failsafe_active and loop.armed
     _check_command(loop, vehicle)
