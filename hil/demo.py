@@ -151,7 +151,9 @@ def _die_with_parent(parent_pid: int | None):
     """In a forked party: never outlive the parent (issue 15: killing `jetloop demo` left its
     onboard child flying for good). Linux: the kernel sends SIGTERM when the parent dies
     (PR_SET_PDEATHSIG; the jetloop commands turn SIGTERM into Ctrl-C); everywhere, the party's
-    own loop also stops once its parent is gone. Returns stop's extra condition."""
+    own loop also stops once its parent is gone. Returns stop's extra condition. (Linux signals
+    when the forking *thread* ends: run_closed_loop must run in a thread that outlives the flight,
+    as the main thread does.)"""
     if parent_pid is None:  # a thread: it dies with its process
         return lambda: False
     try:
