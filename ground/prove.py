@@ -248,6 +248,9 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
         c_times.append(t)
         j_rates.append(float(np.abs(plant.state[lay.alpha.start:lay.beta.stop] - joints0).max()) / t_ctrl)
         n_gaps.append(float(np.abs(plant.state[lay.n] - plant.command[:k]).max()))
+        if t + t_ctrl > duration_s - 1e-9:  # the session ends before the sample at duration_s
+            for name in ("imu", "pressure", "attitude", "truth"):
+                setattr(samples, name, [x for x in getattr(samples, name) if x.time_s < duration_s - 1e-9])
         for s in samples.imu:
             if ardusub:  # ArduPilot GCS_Common send_scaled_imu: mG and mrad/s, int16
                 acc = [int(np.clip(round(a / 9.80665 * 1000), -32768, 32767)) for a in s.accel_frd_m_s2]

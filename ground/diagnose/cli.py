@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
+
 
 def configure(parser) -> None:
     parser.add_argument("recording", help=".tlog or dataflash .bin recording")
@@ -38,7 +40,8 @@ def run(args) -> int:
         say(f"{rec.duration_s:.1f} s, {sum(rec.messages.values())} messages; skipped {s.skipped_bytes} bytes "
             f"({s.bad_crc_packets} bad-CRC packets, {s.truncated_bytes} truncated), "
             f"non-monotonic {sum(s.non_monotonic.values())}, gaps {len(s.gaps)}")
-        diag = diagnose(rec, vehicle, progress=say)
+        with np.errstate(all="ignore"):  # a recording far from the model overflows; the report says so
+            diag = diagnose(rec, vehicle, progress=say)
     except (VehicleFileError, RecordingError, ReplayError) as exc:
         print(f"jetloop diagnose: {exc}", file=sys.stderr)
         return 2
@@ -63,6 +66,10 @@ def summary_text(rep: dict) -> str:
         lines.append("no finding: the nominal model explains the recording within its noise")
     for i, f in enumerate(rep["findings"]):
         lines.append(f"{i + 1}. {f['effect']} ({f['kind']}, confidence {f['confidence']:.2f}): {f['explanation']}")
+    for w in rep.get("warnings", []):
+        lines.append(f"warning: {w}")
+    for u in rep.get("untestable", []):
+        lines.append(f"not testable: {u['effect']}: {u['reason']}")
     h = rep["fit"]["holdout"]
     fmt = lambda v: f"{v:.3f}" if isinstance(v, (int, float)) and v == v else "n/a"  # noqa: E731
     lines.append(f"held-out NRMSE total: {fmt(h['before']['total'])} -> {fmt(h['after']['total'])}")

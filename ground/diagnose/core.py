@@ -27,6 +27,7 @@ from .candidates import (CHANNEL_AXIS, CHANNELS, CorrectedModel, Evaluator, Fit,
 UNKNOWN_IF_EXPLAINED_BELOW = 0.5
 SHOOT_S = 2.0  # multiple-shooting window length for the held-out NRMSE
 WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re-fly each from its start)
+SECOND_MIN_GAIN = 0.15  # a second effect must add this share of the first one's held-out drop
 LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn)
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
 Z_GATE = 2.5  # a finding's held-out improvement must exceed Z_GATE sd of the held-out chi-square
@@ -72,14 +73,16 @@ def fit_windows(rec, max_fit_s: float) -> list[tuple[float, float]]:
     """[(t0, t1)] of the fitting windows: WINDOW_S each, at most max_fit_s in all, spread evenly
     over the recording's segments (every regime stays represented; a gap never inside one)."""
     out = []
+    imu = rec.imu.time_s
+    win = max(WINDOW_S, 40.0 * float(np.median(np.diff(imu)))) if len(imu) > 1 else WINDOW_S  # slow IMUs
     for a, b in rec.segment_bounds():
-        n = int((b - a) // WINDOW_S)
-        out += [(a + i * WINDOW_S, a + (i + 1) * WINDOW_S) for i in range(n)]
+        n = int((b - a) // win)
+        out += [(a + i * win, a + (i + 1) * win) for i in range(n)]
     if not out:  # shorter than one window: the whole of it
         bounds = rec.segment_bounds() or [(rec.t_start_s, rec.t_end_s)]
         a, b = max(bounds, key=lambda s: s[1] - s[0])
         return [(a, b)]
-    keep = max(1, int(max_fit_s // WINDOW_S))
+    keep = max(1, int(max_fit_s // win))
     if len(out) > keep:
         out = [out[i] for i in np.unique(np.round(np.linspace(0, len(out) - 1, keep)).astype(int))]
     return out
@@ -91,7 +94,12 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     t_start = time.perf_counter()
     rec = _longest_segment(rec, progress)
     _say(progress, f"estimating {rec.duration_s:.1f} s with the nominal model '{vehicle.name}' (EKF + RTS smoother)")
-    ev = Evaluator(rec, vehicle)
+    try:
+        ev = Evaluator(rec, vehicle)
+    except replay.ReplayError as exc:
+        if "overlap for only" not in str(exc):
+            raise
+        return _insufficient(rec, vehicle, str(exc).split(": ", 1)[-1], t_start)
     traj = ev.traj0
     res0 = ev.residual(ev.base)
     noise = locate.noise_realisation(ev, res0)
@@ -102,7 +110,16 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     _say(progress, f"{len(windows)} window(s) above the noise floor")
     # --- candidates, scored on short windows spread over the recording (the null draws re-fly them)
     spans = fit_windows(rec, max_fit_s)
-    recs_w = [rec.between(a, b) for a, b in spans]
+    recs_w = []
+    for a, b in spans:  # a window whose streams do not overlap enough is left out
+        w = rec.between(a, b)
+        try:
+            replay.grid_for(w)
+            recs_w.append(w)
+        except replay.ReplayError:
+            continue
+    if not recs_w:
+        return _insufficient(rec, vehicle, "no stretch where IMU, pressure and commands overlap long enough", t_start)
     leads = [_lead_in(rec, traj, r, vehicle) for r in recs_w]
     evs = [Evaluator(r, vehicle, lead) for r, lead in zip(recs_w, leads)]
     ev_fit = SegmentedEvaluator(evs)
@@ -110,7 +127,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     split_fit = locate.make_split([e.traj0 for e in evs], [locate.noise_realisation(e, e.residual(e.base)) for e in evs])
     cands = candidates_for(vehicle)
     families = [c.effect for c in cands]
-    _say(progress, f"scoring {len(cands)} candidates on {len(spans)} window(s) of {WINDOW_S:.0f} s")
+    _say(progress, f"scoring {len(cands)} candidates on {len(recs_w)} window(s) of {recs_w[0].duration_s:.0f} s")
     scores = decide.linear_scores(ev_fit, cands, split_fit, res0_fit, vehicle) + [
         decide.bias_score([e.traj0 for e in evs], vehicle)]
     # --- calibrate on recordings of the null hypothesis (null.py)
@@ -152,7 +169,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             gain, gain_h = decide.joint_gain(ranked[0], other)
             _say(progress, f"pair {ranked[0].effect}+{other.effect}: gain {gain:.1f} (threshold "
                            f"{cal.threshold[other.effect]:.1f}), held-out {gain_h:.1f}")
-            if gain > cal.threshold[other.effect] and gain_h > 0 and (best_pair is None or gain_h > best_pair[1]):
+            if (gain > cal.threshold[other.effect] and gain_h > SECOND_MIN_GAIN * ranked[0].holdout_drop
+                    and (best_pair is None or gain_h > best_pair[1])):
                 best_pair = (other, gain_h)
         if best_pair is not None:
             named.append(best_pair[0])
@@ -212,13 +230,18 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     res1 = final_res
     n_fam = len(families)
     findings = [_finding(f, vehicle, by_effect.get(f.candidate.effect), cal, n_fam) for f in chosen]
-    if bias_named:
+    if bias_named:  # an IMU bias is named when it stands further above its threshold than the forces
         entry = _bias_finding(bias, cal, n_fam)
         if not findings or bias.statistic / cal.threshold["imu_bias"] > max(
                 by_effect[f["effect"]].statistic / cal.threshold[f["effect"]] for f in findings):
             findings.insert(0, entry)
-        else:
-            findings.append(entry)
+    est = traj.estimate
+    warnings = []
+    if est.divergences:
+        warnings.append(f"the nominal model could not follow this recording: its estimator restarted "
+                        f"{est.divergences} time(s); the vehicle file does not describe this vehicle, so no "
+                        "finding is named")
+        findings = []
     if unknown is not None:
         entry = {"effect": "unknown", "kind": "missing",
                  "confidence": round(unknown["confidence"], 3), "parameters": {},
@@ -226,7 +249,6 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                  "heldout_chi2_drop": round(unknown["delta"], 1)}
         # ranked by what it explains: first when it explains more than the known effects named
         findings.insert(0 if unknown.get("first") or not findings else len(findings), entry)
-    est = traj.estimate
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
         "recording": rec.summary(),
@@ -242,9 +264,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 "median_sd": [round(float(v), 4) for v in np.median(dist_sd, axis=0)],
                 "innovation_rms": {k: round(v, 3) for k, v in est.innovation_rms.items()},
                 "outliers": est.outliers,
+                "divergences": est.divergences,
             },
         },
         "findings": findings,
+        "warnings": warnings,
         "untestable": untestable,
         "rejected": rejected,
         "fit": {
@@ -290,6 +314,26 @@ def _lead_in(rec, traj, window, vehicle) -> replay.LeadIn:
     return replay.LeadIn(cmd, None)
 
 
+def _insufficient(rec, vehicle, reason: str, t_start: float) -> Diagnosis:
+    """The report of a recording too short or too sparse to test anything: every candidate
+    untestable, with the reason (a verdict, not an error)."""
+    imu = rec.imu
+    hz = (len(imu.time_s) - 1) / max(imu.time_s[-1] - imu.time_s[0], 1e-9) if imu is not None and len(imu.time_s) > 1 else 0.0
+    why = f"{reason} (IMU at {hz:.0f} Hz): too little data to test anything"
+    nan = float("nan")
+    report = {
+        "recording": rec.summary(),
+        "mismatch": {"signals": {}, "windows": []},
+        "findings": [],
+        "untestable": [{"effect": c.effect, "reason": why} for c in candidates_for(vehicle)],
+        "rejected": [],
+        "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}, "raw": {"before": nan, "after": nan}},
+                "holdout_fraction": 0.0, "method": "none: too little data"},
+        "elapsed_s": round(time.perf_counter() - t_start, 2),
+    }
+    return Diagnosis(report, None, None, None, [], [], {}, replay.nominal_mass_diag(vehicle))
+
+
 def _state_at(traj, t: float):
     """(x, sd) of the whole recording's smoothed estimate at time t."""
     i = int(np.clip(np.searchsorted(traj.time_s, t), 0, len(traj.time_s) - 1))
@@ -310,8 +354,9 @@ def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
     """Why the recording cannot test `effect`: a rule on the motion when one explains it, and the
     Cramer-Rao bound that decided it."""
     sd = decide.calibrated_sd(s, cal)
-    rel = float(np.min(sd / np.maximum(s.reference, 1e-300)))
-    crb = f"Cramer-Rao sd {rel:.1f}x the smallest error worth finding"
+    rel = float(np.min(sd / np.maximum(s.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
+    crb = (f"Cramer-Rao sd {rel:.1f}x the smallest error worth finding" if math.isfinite(rel)
+           else "the recording carries no information on it")
     e = vehicle.environment
     R = vehicle.body.radius
     z = traj.pos_ned_m[:, 2]

@@ -96,7 +96,8 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
     step = max(1, int(round(DECORRELATE_S / ((split.train[1] - split.train[0]) * ev_dt(ev)))) if len(split.train) > 1 else 1)
     tr, ho = split.train[::step], split.holdout[::step]
     w = 1.0 / np.maximum(sd, 1e-9)
-    y_tr, y_ho = (dist[tr] * w[tr]).ravel(), (dist[ho] * w[ho]).ravel()
+    y_tr = np.nan_to_num((dist[tr] * w[tr]).ravel())
+    y_ho = np.nan_to_num((dist[ho] * w[ho]).ravel())
     out = []
     for c in cands:
         if c.effect == "imu_bias":
@@ -116,8 +117,9 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                 cols.append((ev.residual(c.apply(th, ev.base)) - res0) / (th[j] - theta0[j]))
         # what the candidate adds to the force, per unit of its parameters: -M dr/dtheta
         F = [-(col[:, :6] * M) for col in cols]
-        J_tr = np.column_stack([(f[tr] * w[tr]).ravel() for f in F])
-        J_ho = np.column_stack([(f[ho] * w[ho]).ravel() for f in F])
+        # a direction the model cannot evaluate (non-finite) carries no evidence
+        J_tr = np.nan_to_num(np.column_stack([(f[tr] * w[tr]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
+        J_ho = np.nan_to_num(np.column_stack([(f[ho] * w[ho]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         A = J_tr.T @ J_tr
         g = J_tr.T @ y_tr
         ridge = 1e-12 * max(np.trace(A), 1e-300)
@@ -221,4 +223,5 @@ def testable(score: Score, cal: Calibration) -> bool:
         return True
     sd = calibrated_sd(score, cal)
     ref = np.maximum(np.asarray(score.reference, float), 1e-300)
-    return bool(np.min(sd / ref) <= UNTESTABLE_REL_SD)
+    rel = sd / ref
+    return bool(np.isfinite(rel).any() and np.nanmin(rel) <= UNTESTABLE_REL_SD)

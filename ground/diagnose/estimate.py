@@ -43,6 +43,7 @@ from onboard.jit import MODEL_SOURCE, key_caches_on
 NX = 24
 I_POS, I_ATT, I_NU, I_D, I_BG, I_BA = 0, 3, 6, 12, 18, 21
 CHUNK = 2000
+MAX_SUBSTEP_S = 0.02  # the model is integrated in steps no longer than this between two samples
 GATE_CHI2 = 36.0  # a scalar innovation beyond 6 sigma is an outlier: skipped and counted
 
 # Measurement kinds, in the order of `Estimate.innovation_rms`.
@@ -59,8 +60,8 @@ class Noise:
     d_ang_nm_s: float = 0.02  # disturbance moment random walk (N m per sqrt(s))
     gyro_bias_rw: float = 1e-5  # rad/s per sqrt(s)
     accel_bias_rw: float = 1e-4  # m/s^2 per sqrt(s)
-    p0_vel_m_s: float = 0.2
-    p0_rate_rad_s: float = 0.1
+    p0_vel_m_s: float = 1.0  # wide: a window may start mid-manoeuvre (and the gate must not
+    p0_rate_rad_s: float = 2.0  # take its first samples for outliers)
     p0_d_lin_n: float = 2.0
     p0_d_ang_nm: float = 0.1
     p0_gyro_bias: float = 0.02
@@ -96,6 +97,7 @@ class Estimate:
     n_scalar: np.ndarray  # (N,) scalar measurements used at each step
     outliers: int  # innovations beyond the gate, skipped
     innovation_rms: dict  # MEAS kind -> RMS of normalised innovations (1 when the model and noise agree)
+    divergences: int = 0  # times the model could not follow and the filter restarted
 
     @property
     def disturbance(self) -> np.ndarray:
@@ -239,6 +241,9 @@ def _filter(x0, P0, act, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, a
     H = np.zeros(NX)
     I = np.eye(NX)
     outliers = 0
+    resets = 0
+    nsub = max(1, int(math.ceil(h / MAX_SUBSTEP_S - 1e-9)))  # slow IMUs: the model steps finer
+    hs = h / nsub
     for k in range(n):
         if reset[k]:
             for i in range(12):
@@ -304,17 +309,32 @@ def _filter(x0, P0, act, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, a
             Ps_f[k] = P
         # predict to t_{k+1}: A re-evaluated at the posterior would be better; the prior's is
         # within the linearisation error at these step sizes
-        Ah = A * h
-        F = I + Ah + 0.5 * (Ah @ Ah)
-        x = _step(x, act[k], cmd[k], p, minv, h, X, Xdot)
-        P = F @ P @ F.T
+        Ah = A * hs
+        Fs1 = I + Ah + 0.5 * (Ah @ Ah)
+        F = Fs1.copy()
+        for _ in range(nsub - 1):
+            F = Fs1 @ F
+        x_new = x.copy()
+        for _ in range(nsub):
+            x_new = _step(x_new, act[k], cmd[k], p, minv, hs, X, Xdot)
+        P_new = F @ P @ F.T
         for i in range(NX):
-            P[i, i] += qdiag[i] * h
+            P_new[i, i] += qdiag[i] * h
+        if np.isfinite(x_new).all() and np.isfinite(P_new).all() and np.abs(x_new[I_NU:I_NU + 6]).max() < 100.0:
+            x, P = x_new, P_new
+        else:  # the model cannot follow (a vehicle file that does not fit the recording): restart
+            # from the last estimate at rest, with the prior's uncertainty, and count it
+            resets += 1
+            x[I_NU:I_NU + 6] = 0.0
+            x[I_D:I_D + 6] = 0.0
+            P[:, :] = 0.0
+            for i in range(NX):
+                P[i, i] = p_reset[i]
         if store:
             xs_p[k] = x
             Ps_p[k] = P
             Fs[k] = F
-    return x, P, outliers
+    return x, P, outliers, resets
 
 
 @njit(cache=True)
@@ -334,6 +354,9 @@ def _rts(xs_f, Ps_f, xs_p, Ps_p, Fs, x_next, P_next, xs, stds):
         xn = xs_f[k] + C @ dx
         Pn = Ps_f[k] + C @ (Pn - Ps_p[k]) @ C.T
         Pn = 0.5 * (Pn + Pn.T)
+        if not (np.isfinite(xn).all() and np.isfinite(Pn).all()):  # fall back on the filter
+            xn = xs_f[k].copy()
+            Pn = Ps_f[k].copy()
         xs[k] = xn
         for i in range(NX):
             stds[k, i] = math.sqrt(max(Pn[i, i], 0.0))
@@ -384,7 +407,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     minv = nominal_mass_inverse(p)
     q = process_noise(noise)
     P0 = initial_covariance(noise)
-    p_reset = np.diag(P0)[:12].copy()
+    p_reset = np.diag(P0).copy()
     p_reset[I_POS:I_POS + 2] = 10.0 ** 2  # after a gap the horizontal position is unknown
     surf = float(p[model.P_SURF])
     act = np.ascontiguousarray(act, float)
@@ -400,15 +423,16 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     starts = list(range(0, n, CHUNK))
     checkpoints = []
     x, P = np.asarray(x0, float).copy(), P0
-    outliers = 0
+    outliers = resets = 0
     for s0 in starts:
         s1 = min(s0 + CHUNK, n)
         checkpoints.append((x.copy(), P.copy()))
         sl = slice(s0, s1)
-        x, P, o = _filter(x, P, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
+        x, P, o, r = _filter(x, P, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
                           meas.reset[sl], p_reset, False, dummy2, dummy3, dummy2, dummy3, dummy3,
                           nll[sl], nsc[sl], inno_ss, inno_n)
         outliers += o
+        resets += r
     xs = np.zeros((n, NX))
     stds = np.zeros((n, NX))
     x_next, P_next = x, P  # the prediction past the end: nothing after it to smooth with
@@ -428,7 +452,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     rms = {MEAS[i]: float(math.sqrt(inno_ss[i] / inno_n[i])) for i in range(len(MEAS)) if inno_n[i]}
     for a in (xs, stds, nll):
         a.setflags(write=False)
-    return Estimate(meas.time_s, xs, stds, nll, nsc, int(outliers), rms)
+    return Estimate(meas.time_s, xs, stds, nll, nsc, int(outliers), rms, int(resets))
 
 
 

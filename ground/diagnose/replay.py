@@ -38,6 +38,7 @@ from . import estimate
 
 SMOOTH_S = 0.21  # Savitzky-Golay window for rates and accelerations (order 2)
 MOCAP_SMOOTH_S = 0.31  # Savitzky-Golay window for velocity from motion-capture position
+ACT_MAX_STEP_S = 0.005  # largest RK4 step of the actuator run
 SIGNALS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z", "depth", "roll", "pitch", "yaw")
 AXES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
 
@@ -184,11 +185,12 @@ def rotation_rows(q) -> np.ndarray:
 @dataclass(frozen=True)
 class LeadIn:
     """What came before a window cut from a longer recording: the commands of the seconds before
-    it (on the window's grid spacing, oldest first), so the actuators are mid-flight at its start,
-    and the smoother's state there (`estimate` layout; disturbance and biases zero)."""
+    it (on the window's grid spacing, oldest first), so the actuators are mid-flight at its start;
+    optionally a state for the smoother to start from (`estimate` layout), else its generic prior
+    (`estimate.initial_state`)."""
 
     command: np.ndarray  # (L, 3k)
-    x0: np.ndarray  # (estimate.NX,)
+    x0: np.ndarray | None = None  # (estimate.NX,)
 
 
 def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = None,
@@ -382,6 +384,9 @@ def actuator_run_commands(command: np.ndarray, dt: float, p: np.ndarray, n_units
     k = n_units
     xa0 = np.zeros(3 * k + model.N_TF_STATES * k)
     xa0[k:3 * k] = command[0, k:3 * k]
+    # the seed-004 filters have poles near 60 rad/s: RK4 steps of at most 5 ms keep them stable
+    # however slow the recording's IMU (ArduSub sends 2-25 Hz)
+    substeps = max(int(substeps), int(math.ceil(dt / ACT_MAX_STEP_S - 1e-9)))
     return _actuator_run(np.ascontiguousarray(command), p, dt, substeps, xa0)
 
 

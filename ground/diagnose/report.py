@@ -55,8 +55,26 @@ def write_html(diag, out_dir) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     rep = diag.report
     traj = diag.traj
-    t = traj.time_s
     figs = []
+    if traj is None:  # nothing could be tested: the page says why
+        return _page(out, rep, figs)
+    t = traj.time_s
+
+    # 0. the smoothed disturbance: where the nominal model is wrong, with its 95 % band
+    est = traj.estimate
+    if est is not None:
+        fig, axs = plt.subplots(6, 1, figsize=(11, 10), sharex=True)
+        d, s = est.disturbance, est.disturbance_std
+        for i, ax in enumerate(axs):
+            ax.fill_between(est.time_s, d[:, i] - 1.96 * s[:, i], d[:, i] + 1.96 * s[:, i], color="tab:blue", alpha=0.25,
+                            lw=0, label="95 % band")
+            ax.plot(est.time_s, d[:, i], lw=0.7, color="tab:blue", label="smoothed disturbance")
+            ax.axhline(0.0, color="0.3", lw=0.5)
+            ax.set_ylabel(f"{replay.AXES[i]}\n[{'N' if i < 3 else 'N m'}]")
+        axs[0].legend(loc="upper right", fontsize=8)
+        axs[-1].set_xlabel("vehicle time [s]")
+        fig.suptitle("generalised-force disturbance the nominal model needs to follow the recording (EKF + RTS)")
+        figs.append(_save(fig, out / "disturbance.png", plt))
 
     # 1. residual over time with flagged windows
     fig, axs = plt.subplots(6, 1, figsize=(11, 10), sharex=True)
@@ -114,6 +132,11 @@ def write_html(diag, out_dir) -> Path:
         fig.suptitle(f"finding {k + 1}: {f['effect']} ({f['kind']})")
         figs.append(_save(fig, out / f"finding_{k + 1}.png", plt))
 
+    return _page(out, rep, figs)
+
+
+def _page(out: Path, rep: dict, figs: list) -> Path:
+    """index.html: findings, what cannot be tested, held-out NRMSE, windows, the figures."""
     rows = "".join(
         f"<tr><td>{i + 1}</td><td><b>{html.escape(f['effect'])}</b></td><td>{f['kind']}</td>"
         f"<td>{f['confidence']:.2f}</td><td>{html.escape(f['explanation'])}</td></tr>"
@@ -128,6 +151,12 @@ def write_html(diag, out_dir) -> Path:
     win_rows = "".join(
         f"<tr><td>{w['t0']:.1f}-{w['t1']:.1f}</td><td>{', '.join(w['axes'])}</td><td>{w['score']:.1f}</td>"
         f"<td>{', '.join(w.get('regimes', []))}</td></tr>" for w in rep["mismatch"]["windows"])
+    untest = "".join(f"<tr><td>{html.escape(u['effect'])}</td><td>{html.escape(u['reason'])}</td></tr>"
+                     for u in rep.get("untestable", []))
+    cal = rep.get("calibration")
+    calib = (f"<p>Decision thresholds calibrated on {cal['null_draws']} null draws of this recording (the nominal "
+             f"model re-flown under its commands with its estimated noise): at most {100 * cal['alpha_family']:.2f} % "
+             f"false alarms per candidate family, {100 * cal['alpha_recording']:.0f} % per recording.</p>") if cal else ""
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>jetloop diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}} td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style></head><body>
 <h1>Diagnosis of {html.escape(rep['recording'].get('source', ''))}</h1>
@@ -136,6 +165,9 @@ bad-CRC packets {rep['recording'].get('bad_crc_packets', 0)}.</p>
 <h2>Findings</h2>
 {'<table><tr><th>#</th><th>effect</th><th>kind</th><th>confidence</th><th>evidence</th></tr>' + rows + '</table>' if rows else '<p>No finding: the nominal model explains the recording within its noise.</p>'}
 {'<h3>Vehicle-file fragment</h3><pre>' + html.escape(fragment_toml(frag)) + '</pre>' if frag else ''}
+<h2>Not testable on this recording</h2>
+{'<table><tr><th>effect</th><th>why</th></tr>' + untest + '</table>' if untest else '<p>every candidate could be tested</p>'}
+{calib}
 <h2>Held-out NRMSE</h2><table><tr><th>signal</th><th>before</th><th>after</th></tr>{sig_rows}</table>
 <p>{html.escape(rep['fit']['method'])}</p>
 <h2>Windows above the noise floor</h2>
