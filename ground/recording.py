@@ -142,15 +142,15 @@ class Recording:
 
     @property
     def t_start_s(self) -> float:
-        return min(float(s.time_s[0]) for s in self.streams.values() if len(s.time_s))
+        return min((float(s.time_s[0]) for s in self.streams.values() if len(s.time_s)), default=0.0)
 
     @property
     def t_end_s(self) -> float:
-        return max(float(s.time_s[-1]) for s in self.streams.values() if len(s.time_s))
+        return max((float(s.time_s[-1]) for s in self.streams.values() if len(s.time_s)), default=0.0)
 
     @property
     def duration_s(self) -> float:
-        return self.t_end_s - self.t_start_s if self.streams else 0.0
+        return self.t_end_s - self.t_start_s
 
     def between(self, t0_s: float, t1_s: float) -> "Recording":
         """The same recording with every stream cut to t0_s <= t < t1_s (vehicle time)."""
@@ -750,9 +750,19 @@ def _out_of_line(t: np.ndarray) -> np.ndarray:
     starts = np.concatenate([[0], brk + 1])
     ends = np.concatenate([brk + 1, [n]])
     first, last, lens = t[starts], t[ends - 1], ends - starts
-    nxt_first = np.append(first[1:], np.inf)
-    prev_last = np.insert(last[:-1], 0, -np.inf)
-    bad = (lens <= 4) & (last > nxt_first) & (prev_last < nxt_first)
+    runs = np.arange(len(starts))
+    long_ = lens > 4
+    # judged against the nearest long runs around it (several flipped stamps in a row are
+    # several short runs), or the nearest runs where there is no long one
+    nxt_long = np.minimum.accumulate(np.where(long_, runs, len(starts))[::-1])[::-1]
+    nxt_long = np.append(nxt_long[1:], len(starts))
+    prv_long = np.maximum.accumulate(np.where(long_, runs, -1))
+    prv_long = np.insert(prv_long[:-1], 0, -1)
+    nxt = np.where(nxt_long < len(starts), nxt_long, np.minimum(runs + 1, len(starts)))
+    prv = np.where(prv_long >= 0, prv_long, np.where(runs > 0, 0, -1))  # no long run before: the first
+    nxt_first = np.append(first, np.inf)[nxt]
+    prev_last = np.where(prv >= 0, last[np.maximum(prv, 0)], -np.inf)
+    bad = ~long_ & (last > nxt_first) & (prev_last < nxt_first)
     return np.repeat(bad, lens)
 
 
@@ -794,35 +804,53 @@ def _monotonic(t, stream: str, tally: "_Tally", valid=None):
 STREAM_NAMES = ("imu", "pressure", "servo", "attitude", "esc", "mocap")
 
 
-def _trim_tails(streams: tuple, tally: _Tally) -> tuple:
+def _core(t: np.ndarray) -> tuple:
+    """(i0, i1): a stream without up to 4 samples at each end that stand apart (> 1 s) from the
+    rest: t[i0:i1] is what the other streams' ends are judged against."""
+    i0, i1 = 0, len(t)
+    gaps = np.nonzero(np.diff(t) > 1.0)[0]
+    for g in gaps[:4]:  # leading runs, while at most 4 samples in all
+        if g + 1 > 4:
+            break
+        i0 = g + 1
+    for g in gaps[::-1][:4]:  # trailing runs
+        if len(t) - (g + 1) > 4:
+            break
+        i1 = g + 1
+    return (i0, i1) if i1 - i0 >= 5 else (0, len(t))
+
+
+def _trim_tails(streams: tuple, tally: _Tally, ref: tuple | None = None) -> tuple:
     """At most 4 samples at a stream's start or end lying more than 1 s outside the time span of
     every other stream (a flipped bit in the last stamps: nothing after them says they are out of
-    line) are dropped and counted in `bad_time`; the gaps to them go too."""
-    out = list(streams)
-    for _ in range(3):  # a stream's own damaged tail widened the others' span: once more after it goes
-        before = list(out)
-        out = list(_trim_once(tuple(out), tally))
-        if all(a is b for a, b in zip(before, out)):
-            break
-    return tuple(out)
-
-
-def _trim_once(streams: tuple, tally: _Tally) -> tuple:
+    line) are dropped and counted in `bad_time`; the gaps to them go too. A stream left with no
+    sample (every one NaN, say) is None, as one that was never sent. `ref`, the span of the
+    log's own clock (every dataflash record), stands in for the others when a stream is alone."""
     import dataclasses
 
-    named = [(n, s) for n, s in zip(STREAM_NAMES, streams) if s is not None and len(s.time_s)]
-    if len(named) < 2:
-        return streams
-    out = list(streams)
+    out = [s if s is not None and len(s.time_s) else None for s in streams]
+    named = [(n, s) for n, s in zip(STREAM_NAMES, out) if s is not None]
+    if len(named) + (ref is not None) < 2:
+        return tuple(out)
+    cores = {n: _core(s.time_s) for n, s in named}
+    spans = {n: (float(s.time_s[cores[n][0]]), float(s.time_s[cores[n][1] - 1])) for n, s in named}
+    if ref is not None and len(named) == 1:  # the log's clock, only where no other stream can say
+        spans["log"] = ref
     for name, s in named:
-        others = [o.time_s for m, o in named if m != name]
-        lo, hi = min(float(o[0]) for o in others), max(float(o[-1]) for o in others)
+        lo = min(c[0] for m, c in spans.items() if m != name)
+        hi = max(c[1] for m, c in spans.items() if m != name)
         t = s.time_s
-        i0 = int(np.searchsorted(t, lo - 1.0, side="left"))  # t[:i0] before the others began
-        i1 = int(np.searchsorted(t, hi + 1.0, side="right"))  # t[i1:] after they ended
-        i0 = i0 if i0 <= 4 else 0
-        i1 = i1 if len(t) - i1 <= 4 else len(t)
-        if (i0, i1) == (0, len(t)) or i1 - i0 < 5:
+        c0, c1 = cores[name]  # of the samples apart at the ends, those outside the others' span
+        i0 = min(c0, int(np.searchsorted(t, lo - 1.0, side="left")))
+        i1 = max(c1, int(np.searchsorted(t, hi + 1.0, side="right")))
+        if len(t) <= 4 and (t[-1] < lo - 1.0 or t[0] > hi + 1.0):
+            i0 = i1 = len(t)  # a few samples, all away from everything else: a damaged record or two
+        if (i0, i1) == (0, len(t)):
+            continue
+        if i1 <= i0:
+            tally.add(tally.bad_time, name, len(t))
+            tally.gaps[:] = [g for g in tally.gaps if g[0] != name]
+            out[STREAM_NAMES.index(name)] = None
             continue
         tally.add(tally.bad_time, name, i0 + len(t) - i1)
         t0, t1 = float(t[i0]), float(t[i1 - 1])
@@ -975,6 +1003,7 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
     except Exception as exc:  # DFReader raises bare exceptions on unusable headers
         raise RecordingError(f"{path}: not a readable dataflash log: {exc}") from exc
     rows: dict = {"IMU": [], "BARO": [], "RCOU": [], "ATT": [], "ESC": []}
+    log_times: list = []  # TimeUS of every record of every type: the log's own clock, for _trim_tails
     counts: dict = {}
     used_bytes = 0
     while True:
@@ -990,6 +1019,9 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
         used_bytes += getattr(fmt, "len", 0) or 0
         if name in rows:
             rows[name].append(m.to_dict())
+        t_us = getattr(m, "TimeUS", None)
+        if isinstance(t_us, (int, float)) and not isinstance(t_us, bool):
+            log_times.append(t_us)
     tally = _Tally()
     bad = [bad_fmts]  # damaged FMT records, then records of a used type that cannot be read
     imu = pressure = servo = attitude = esc = None
@@ -1032,7 +1064,11 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
     if not counts:
         raise RecordingError(f"{path}: no dataflash records found")
     skipped_bytes = max(int(len(data) - used_bytes), 0)
-    imu, pressure, servo, attitude, esc = _trim_tails((imu, pressure, servo, attitude, esc), tally)
+    ref = None
+    if len(log_times) >= 20:  # the span most records of every type agree on (damaged stamps outvoted)
+        p5, p95 = np.percentile(np.asarray(log_times, float) / 1e6, [5, 95])
+        ref = (float(p5 - 0.1 * (p95 - p5)), float(p95 + 0.1 * (p95 - p5)))
+    imu, pressure, servo, attitude, esc = _trim_tails((imu, pressure, servo, attitude, esc), tally, ref)
     skipped_info = Skipped(0, skipped_bytes, 0, 0, tally.nonmono, tuple(tally.gaps), bad[0],
                            tally.out_of_range, tally.bad_time)
     return Recording(str(path), "dataflash", counts, skipped_info, imu, pressure, servo, attitude, esc)

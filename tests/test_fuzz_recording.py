@@ -210,6 +210,37 @@ def test_damaged_dataflash_is_read_or_refused_with_a_reason(tmp_path, ops, capfd
     assert capfd.readouterr() == ("", "")  # DFReader's line per skipped byte goes nowhere
 
 
+@functools.cache
+def _clean_bin_span() -> tuple:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "clean.BIN"
+        path.write_bytes(shared_file(ARDUSUB / "small.BIN").read_bytes())
+        rec = read_recording(path)
+        return rec.t_start_s, rec.t_end_s
+
+
+@settings(max_examples=25, deadline=timedelta(seconds=30),
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(rate=st.sampled_from([0.001, 0.003, 0.005]), seed=st.integers(0, 2 ** 32 - 1))
+@example(rate=0.005, seed=1)  # a flipped FMT record: DFReader refused the whole log
+def test_dataflash_with_bit_flips_stays_within_its_true_span(tmp_path, rate, seed):
+    """Issue 15 item 9: bit flips in a fraction of the .bin's bytes: the log is read (a damaged FMT
+    record is counted, not fatal) and no stream leaves the clean log's time span (an impossible or
+    out-of-line time is dropped and counted: 9.2e12 s before). 300 draws pass at <= 0.5 % (the
+    issue's rate); at 1 % a stream whose records are damaged every other one (no run of 5 good
+    stamps to judge by) can still keep an isolated wrong time."""
+    data = bytearray(shared_file(ARDUSUB / "small.BIN").read_bytes())  # the whole log: its streams
+    rng = np.random.default_rng(seed)
+    for i in rng.choice(len(data), size=max(1, int(rate * len(data))), replace=False):
+        data[i] ^= 1 << int(rng.integers(8))
+    rec = _read(tmp_path, "flipped.bin", bytes(data))
+    if rec is None:
+        return
+    t0, t1 = _clean_bin_span()
+    for name, s in rec.streams.items():
+        assert t0 - 1 <= s.time_s[0] and s.time_s[-1] <= t1 + 1, name
+
+
 def _fmt_offset(data: bytes, name: bytes) -> int:
     """Offset of the FMT record (0xA3 0x95 0x80 type len name[4] format[16] columns[64]) of NAME."""
     i = data.find(b"\xa3\x95\x80")

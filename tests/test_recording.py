@@ -401,3 +401,15 @@ def test_dataflash_with_bit_flips_has_no_impossible_time(tmp_path, ardusub_data)
             assert s.time_s[0] >= clean.t_start_s - 1 and s.time_s[-1] <= clean.t_end_s + 1, (seed, name)
         assert rec.duration_s <= clean.duration_s + 1
         assert sum(len(s.time_s) for s in rec.streams.values()) > 0.5 * sum(len(s.time_s) for s in clean.streams.values())
+
+
+def test_a_stream_of_only_nan_samples_is_absent_and_counted(tmp_path):
+    """Every IMU sample NaN: the stream is None (as if never sent), the samples counted, and the
+    summary still builds (an empty stream made t_start_s raise)."""
+    bad = [(i * 0.01, mav.MAVLink_highres_imu_message(i * 10_000, float("nan"), 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+                                                        0, 0b111111, 0)) for i in range(20)]
+    p = tmp_path / "allnan.tlog"
+    p.write_bytes(_tlog(bad + [(0.2, _pressure(0.2, 101325.0))]))
+    rec = read_recording(p)
+    assert rec.imu is None and rec.skipped.out_of_range == {"imu": 20}
+    assert rec.summary()["duration_s"] == 0.0 and rec.segment_bounds() == [(0.2, 0.2)]
