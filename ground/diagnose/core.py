@@ -27,6 +27,7 @@ from .candidates import (CHANNEL_AXIS, CHANNELS, CorrectedModel, Evaluator, Fit,
 UNKNOWN_IF_EXPLAINED_BELOW = 0.5
 SHOOT_S = 2.0  # multiple-shooting window length for the held-out NRMSE
 WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re-fly each from its start)
+RANK_TOP = 4  # significant candidates fitted nonlinearly to rank them
 SECOND_MIN_GAIN = 0.15  # a second effect must add this share of the first one's held-out drop
 LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn)
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
@@ -159,37 +160,42 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")
     significant = [s for s in scores if s.effect not in skip and s.statistic > cal.threshold[s.effect]
                    and not (s.holdout_drop <= 0)]  # NaN (imu_bias) passes: it has no residual step
-    # --- rank the significant force candidates by their held-out drop; a second one must pass the
-    # nested score test (its gain on top of the first) against its own calibrated threshold
-    ranked = sorted((s for s in significant if s.effect != "imu_bias"), key=lambda s: -s.holdout_drop)
-    named: list = ranked[:1]
-    if ranked:
-        best_pair = None
-        for other in ranked[1:4]:
-            gain, gain_h = decide.joint_gain(ranked[0], other)
-            _say(progress, f"pair {ranked[0].effect}+{other.effect}: gain {gain:.1f} (threshold "
-                           f"{cal.threshold[other.effect]:.1f}), held-out {gain_h:.1f}")
-            if (gain > cal.threshold[other.effect] and gain_h > SECOND_MIN_GAIN * ranked[0].holdout_drop
-                    and (best_pair is None or gain_h > best_pair[1])):
-                best_pair = (other, gain_h)
-        if best_pair is not None:
-            named.append(best_pair[0])
-    # --- the named candidates' parameters by nonlinear least squares (training blocks)
-    fits: list[Fit] = []
-    for s in named:
+    # --- the significant force candidates (at most RANK_TOP, by their linear held-out drop) fitted by
+    # nonlinear least squares on the training blocks; ranked by the held-out chi-square drop of
+    # that fit, which sees the effect's own shape (fast transients the smoothed disturbance blurs)
+    pool = sorted((s for s in significant if s.effect != "imu_bias"), key=lambda s: -s.holdout_drop)[:RANK_TOP]
+    single: list[Fit] = []
+    for s in pool:
         c = next(c for c in cands if c.effect == s.effect)
         x0 = tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params else None
-        fits.append(fit(ev_fit, c, split_fit, res0_fit, x0=x0))
+        f = fit(ev_fit, c, split_fit, res0_fit, x0=x0)
+        _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}")
+        if f.delta_holdout > 0:
+            single.append(f)
+    single.sort(key=lambda f: -f.delta_holdout)
     chosen: list[Fit] = []
     final = None
-    if len(fits) == 1:
-        chosen, final = fits, fits[0]
-    elif len(fits) == 2:
-        pc = combine(fits[0].candidate, fits[1].candidate)
-        pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(fits[0].theta) + tuple(fits[1].theta))
-        chosen, final = list(_split_pair(pf, fits[0], fits[1])), pf
-    for f in chosen:
-        _say(progress, f"fit {f.candidate.effect:18s} {f.candidate.parameters(f.theta, vehicle)}")
+    if single:
+        best = single[0]
+        chosen, final = [best], best
+        # a second effect: the nested score test on top of the first (its own calibrated
+        # threshold) and a fair share of the first one's held-out improvement
+        best_pair = None
+        for other in single[1:]:
+            gain, gain_h = decide.joint_gain(by_effect[best.candidate.effect], by_effect[other.candidate.effect])
+            _say(progress, f"pair {best.candidate.effect}+{other.candidate.effect}: gain {gain:.1f} (threshold "
+                           f"{cal.threshold[other.candidate.effect]:.1f})")
+            if gain <= cal.threshold[other.candidate.effect]:
+                continue
+            pc = combine(best.candidate, other.candidate)
+            pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(best.theta) + tuple(other.theta))
+            if pf.delta_holdout - best.delta_holdout > SECOND_MIN_GAIN * best.delta_holdout and (
+                    best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
+                best_pair = (pf, other)
+        if best_pair is not None:
+            pf, other = best_pair
+            chosen, final = list(_split_pair(pf, best, other)), pf
+    fits = single
     bias = by_effect["imu_bias"]
     bias_named = any(s.effect == "imu_bias" for s in significant)
     # --- unknown: a sparse term when nothing known explains enough
