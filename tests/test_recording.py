@@ -413,3 +413,32 @@ def test_a_stream_of_only_nan_samples_is_absent_and_counted(tmp_path):
     rec = read_recording(p)
     assert rec.imu is None and rec.skipped.out_of_range == {"imu": 20}
     assert rec.summary()["duration_s"] == 0.0 and rec.segment_bounds() == [(0.2, 0.2)]
+
+
+def test_dataflash_nan_and_inf_imu_records_dropped_and_counted(tmp_path, ardusub_data):
+    """Issue 15 item 6: a NaN or inf in a dataflash IMU record (CRC-free format) reached diagnose."""
+    import struct
+
+    data = bytearray((ardusub_data / "small.BIN").read_bytes())
+    i = data.find(b"\xa3\x95\x80")
+    while data[i + 5:i + 9] != b"IMU\0":
+        i = data.find(b"\xa3\x95\x80", i + 1)
+    type_id, fmt = data[i + 3], data[i + 9:i + 25].split(b"\0")[0].decode()
+    cols = data[i + 25:i + 89].split(b"\0")[0].decode().split(",")
+    sizes = {"Q": 8, "q": 8, "B": 1, "b": 1, "H": 2, "h": 2, "I": 4, "i": 4, "f": 4, "d": 8, "c": 2, "C": 2,
+             "e": 4, "E": 4, "L": 4, "M": 1, "n": 4, "N": 16, "Z": 64}
+    at = {c: 3 + sum(sizes[f] for f in fmt[:k]) for k, c in enumerate(cols)}
+    clean = read_recording(ardusub_data / "small.BIN")
+    hits = 0
+    j = data.find(bytes([0xA3, 0x95, type_id]))
+    while j >= 0 and hits < 3:
+        if "I" not in at or data[j + at["I"]] == 0:  # the primary IMU (instance 0)
+            value = (float("nan"), float("inf"), 3.4e38)[hits]
+            data[j + at["AccX"]:j + at["AccX"] + 4] = struct.pack("<f", value)
+            hits += 1
+        j = data.find(bytes([0xA3, 0x95, type_id]), j + 3)
+    p = tmp_path / "nan.BIN"
+    p.write_bytes(bytes(data))
+    rec = read_recording(p)
+    assert rec.skipped.out_of_range == {"imu": 3}
+    assert len(rec.imu.time_s) == len(clean.imu.time_s) - 3 and np.isfinite(rec.imu.accel_frd_m_s2).all()
