@@ -66,6 +66,8 @@ def summary_text(rep: dict) -> str:
         lines.append("no finding: the nominal model explains the recording within its noise")
     for i, f in enumerate(rep["findings"]):
         lines.append(f"{i + 1}. {f['effect']} ({f['kind']}, confidence {f['confidence']:.2f}): {f['explanation']}")
+        if f.get("std"):
+            lines.append("   sd: " + ", ".join(f"{k} {v}" for k, v in f["std"].items()))
     for w in rep.get("warnings", []):
         lines.append(f"warning: {w}")
     for u in rep.get("untestable", []):
