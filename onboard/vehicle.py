@@ -478,8 +478,12 @@ class _Errors:
         self.lines.append(f"{key}: unknown key; allowed here: {', '.join(allowed)}")
 
     def raise_if_any(self) -> None:
+        """One problem: one line (what a command prints before exiting 2); several: a header
+        line, then one line per problem, every problem at once."""
+        if len(self.lines) == 1:
+            raise VehicleFileError(f"{self.source}: invalid vehicle file: {self.lines[0]}")
         if self.lines:
-            head = f"{self.source}: invalid vehicle file"
+            head = f"{self.source}: invalid vehicle file ({len(self.lines)} problems)"
             raise VehicleFileError(head + "\n  " + "\n  ".join(self.lines))
 
 

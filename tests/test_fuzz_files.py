@@ -108,7 +108,7 @@ def test_vehicle_with_wrong_keys_types_values_is_refused_with_the_key(edits, ext
     try:
         v = vehicle_from_dict(doc, "fuzz.toml")
     except VehicleFileError as exc:
-        assert str(exc).startswith("fuzz.toml") and "\n  " in str(exc)
+        assert str(exc).startswith("fuzz.toml: invalid vehicle file")
         return
     _assert_finite_vehicle(v)
 

@@ -40,8 +40,12 @@ def load_error(tmp_path, text: str) -> tuple[str, str]:
 
 
 def problem_lines(message: str) -> list[str]:
-    """The per-key lines of a vehicle-file error (the first line is the file header)."""
-    return [ln.strip() for ln in message.splitlines()[1:] if ln.strip()]
+    """The per-key lines of a vehicle-file error: one problem is one line after the file's
+    'invalid vehicle file: '; several follow a header line, one a line."""
+    lines = message.splitlines()
+    if len(lines) == 1:
+        return [lines[0].split("invalid vehicle file: ", 1)[1]]
+    return [ln.strip() for ln in lines[1:] if ln.strip()]
 
 
 # --- the reference vehicle ------------------------------------------------------------------
@@ -377,3 +381,4 @@ def test_every_command_refuses_an_absurd_vehicle_with_exit_2_and_no_traceback(tm
     assert main([command, *COMMANDS_WITH_VEHICLE[command], "--vehicle", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and "body.mass" in err and len(err) < 600, err
+    assert len(err.strip().splitlines()) == 1, err  # one clear line
