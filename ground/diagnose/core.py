@@ -7,6 +7,7 @@ the optional `progress` callback (a function of one string) the console uses.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -196,8 +197,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             pf, other = best_pair
             chosen, final = list(_split_pair(pf, best, other)), pf
     fits = single
+    # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
-    bias_named = any(s.effect == "imu_bias" for s in significant)
+    bias_named = any(s.effect == "imu_bias" for s in significant) and (not chosen or bias.statistic / cal.threshold[
+        "imu_bias"] > max(by_effect[f.candidate.effect].statistic / cal.threshold[f.candidate.effect] for f in chosen))
     # --- unknown: a sparse term when nothing known explains enough
     c0_h, _ = chi2(res0, split, split.holdout)
     n_h = len(split.holdout) * float(split.neff[split.active].sum())
@@ -219,6 +222,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # --- show: held-out multiple shooting, before and after; never a finding that fits worse
     _say(progress, "held-out multiple shooting, before and after")
     final_model = final.model if final is not None else ev.base
+    if bias_named:  # the bias joins the corrected simulation as a sensor correction (spec 5)
+        final_model = dataclasses.replace(final_model, correction=dataclasses.replace(
+            final_model.correction, gyro_bias=tuple(bias.theta[:3]), accel_bias=tuple(bias.theta[3:])))
     extra = None
     if unknown is not None:
         extra = unknown["coefficients"]  # the data-driven term joins the corrected simulation
@@ -227,27 +233,18 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     mdiag = replay.nominal_mass_diag(vehicle)
     shots = _shoot_holdout(ev, traj, split, ev.base, final_model, extra, mdiag)
     rejected = []
-    if (chosen or unknown is not None) and not shots["total_after"] < shots["total_before"]:
-        rejected = [f.candidate.effect for f in chosen] + (["unknown"] if unknown is not None else [])
+    if (chosen or unknown is not None or bias_named) and not shots["total_after"] < shots["total_before"]:
+        rejected = ([f.candidate.effect for f in chosen] + (["unknown"] if unknown is not None else [])
+                    + (["imu_bias"] if bias_named else []))
         _say(progress, f"rejected {', '.join(rejected)}: the held-out fit is not better than the nominal's")
-        chosen, final, unknown = [], None, None
+        chosen, final, unknown, bias_named = [], None, None, False
         final_res = res0
         shots = _shoot_holdout(ev, traj, split, ev.base, ev.base, None, mdiag)
     res1 = final_res
     n_fam = len(families)
     findings = [_finding(f, vehicle, by_effect.get(f.candidate.effect), cal, n_fam) for f in chosen]
-    if bias_named:  # an IMU bias is named when it stands further above its threshold than the forces
-        entry = _bias_finding(bias, cal, n_fam)
-        if not findings or bias.statistic / cal.threshold["imu_bias"] > max(
-                by_effect[f["effect"]].statistic / cal.threshold[f["effect"]] for f in findings):
-            findings.insert(0, entry)
-    est = traj.estimate
-    warnings = []
-    if est.divergences:
-        warnings.append(f"the nominal model could not follow this recording: its estimator restarted "
-                        f"{est.divergences} time(s); the vehicle file does not describe this vehicle, so no "
-                        "finding is named")
-        findings = []
+    if bias_named:
+        findings.insert(0, _bias_finding(bias, cal, n_fam))
     if unknown is not None:
         entry = {"effect": "unknown", "kind": "missing",
                  "confidence": round(unknown["confidence"], 3), "parameters": {},
@@ -255,6 +252,13 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                  "heldout_chi2_drop": round(unknown["delta"], 1)}
         # ranked by what it explains: first when it explains more than the known effects named
         findings.insert(0 if unknown.get("first") or not findings else len(findings), entry)
+    est = traj.estimate
+    warnings = []
+    if est.divergences:
+        warnings.append(f"the nominal model could not follow this recording: its estimator restarted "
+                        f"{est.divergences} time(s); the vehicle file does not describe this vehicle, so no "
+                        "finding is named")
+        findings = []
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
         "recording": rec.summary(),

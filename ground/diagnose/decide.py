@@ -23,7 +23,8 @@ recording). The reported confidence is 1 - families x p_j, the recording-level p
 so large a statistic is not a false alarm.
 
 Cramer-Rao: the covariance of theta is c_j (J^T J)^-1 (Fisher information of the weighted
-residuals, inflated by the calibrated scale). A family is *not testable* on this recording when
+residuals, inflated by the calibrated scale when it is above one); the reported sd is not below
+the spread of the same estimate over the null draws (a bootstrap standard error). A family is *not testable* on this recording when
 even its best-determined parameter has a standard deviation above half its reference magnitude
 (the smallest error worth finding): the data do not excite it.
 """
@@ -64,6 +65,7 @@ class Calibration:
     threshold: dict  # effect -> S threshold
     alpha_family: float
     null_max: dict  # effect -> largest null S seen
+    theta_sd: dict = field(default_factory=dict)  # effect -> sd of the estimate over the null draws
 
 
 def reference_magnitude(cand, vehicle) -> np.ndarray:
@@ -183,11 +185,13 @@ def calibrate(null_scores: list[list[Score]], families: list[str]) -> Calibratio
     n_fam = max(len(families), 1)
     alpha = min(ALPHA_FAMILY, ALPHA_RECORDING / n_fam)
     by: dict = {f: [] for f in families}
+    thetas: dict = {f: [] for f in families}
     p_of: dict = {}
     for draw in null_scores:
         for s in draw:
             if s.effect in by:
                 by[s.effect].append(s.statistic)
+                thetas[s.effect].append(np.asarray(s.theta, float))
                 p_of[s.effect] = s.n_params
     own_scale = {f: float(np.mean(vals)) / p_of[f] for f, vals in by.items() if vals}
     pooled = float(np.median(list(own_scale.values()))) if own_scale else 1.0
@@ -202,7 +206,8 @@ def calibrate(null_scores: list[list[Score]], families: list[str]) -> Calibratio
         scale[f] = c
         thr[f] = c * float(chi2_dist.ppf(1.0 - alpha, p))
         nmax[f] = float(max(vals)) if vals else float("nan")
-    return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax)
+    tsd = {f: np.std(np.array(v), axis=0, ddof=1) for f, v in thetas.items() if len(v) >= 2}
+    return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax, tsd)
 
 
 def confidence(score: Score, cal: Calibration, n_families: int) -> float:
@@ -213,7 +218,11 @@ def confidence(score: Score, cal: Calibration, n_families: int) -> float:
 
 
 def calibrated_sd(score: Score, cal: Calibration) -> np.ndarray:
-    return score.sd * math.sqrt(cal.scale.get(score.effect, cal.pooled_scale))
+    """The parameter's sd: the Cramer-Rao bound inflated by the calibrated scale (never shrunk
+    below the bound), and not below the spread of the same estimate over the null draws."""
+    crb = score.sd * math.sqrt(max(cal.scale.get(score.effect, cal.pooled_scale), 1.0))
+    boot = cal.theta_sd.get(score.effect)
+    return crb if boot is None or np.shape(boot) != np.shape(crb) else np.maximum(crb, boot)
 
 
 def testable(score: Score, cal: Calibration) -> bool:
