@@ -655,7 +655,7 @@ def run_family_case(split: str, index: int, out_dir, reference: Vehicle | None =
                time_s=round(time.perf_counter() - t0, 1))
     if case.expect:
         primary = case.expect[0]
-        row["top1"] = bool(named) and (named[0] == primary or (len(case.expect) > 1 and named[0] in case.expect))
+        row["top1"] = bool(named) and named[0] == primary
         row["top2"] = primary in named[:2]
         row["testable"] = primary not in row["untestable"]
         perr = _param_error(case, findings)
@@ -672,13 +672,11 @@ def _within_sd(case: Case, findings: list, k: float):
     f = next((f for f in findings if f["effect"] == case.expect[0]), None)
     if f is None or "std" not in f:
         return None
+    as_sd = [dict(f, parameters=f["std"])]
     for key, truth in case.check.items():
-        base, _, idx = key.partition("[")
-        got, sd = f["parameters"].get(base), f["std"].get(base)
+        got, sd = _reported([f], case.expect[0], key), _reported(as_sd, case.expect[0], key)
         if got is None or sd is None:
             return None
-        if idx:
-            got, sd = got[int(idx.rstrip("]"))], sd[int(idx.rstrip("]"))]
         t, g, s = (np.atleast_1d(np.asarray(v, float)) for v in (truth, got, sd))
         if np.any(np.abs(g - t) > k * np.maximum(s, 1e-300)):
             return False
@@ -706,7 +704,7 @@ def family_table(rows: list[dict]) -> str:
         pe = [dict(r, ok15=r.get("param_error") is not None and r["param_error"] <= 0.15)
               for r in test if r.get("top2") and r.get("param_error") is not None]
         drops = [r["nrmse_drop"] for r in test if r.get("nrmse_drop") is not None]
-        worse = sum(1 for r in ok if r.get("named") and r.get("nrmse_after", 0) > r.get("nrmse_before", 0))
+        worse = sum(1 for r in sel if r.get("named") and r.get("nrmse_after", 0) > r.get("nrmse_before", 0))
         return (rate(false, "false"), rate(eff, "testable"), rate(test, "top1"), rate(test, "top2"),
                 rate(pe, "ok15"), rate([r for r in test if r.get("within_3sd") is not None], "within_3sd"),
                 f"{100 * float(np.median(drops)):.0f} %" if drops else "-", str(worse))

@@ -121,7 +121,8 @@ def test_null_draw_from_the_true_state_is_the_plant(tmp_path_factory):
 
 
 def test_calibration_recovers_the_scale_of_chi_square_draws():
-    """Null statistics c * chi2(p): the scale comes back, the threshold is c chi2^-1(1 - a)."""
+    """Null statistics c * chi2(p): the scale comes back; the threshold is c chi2^-1(1 - a), or the
+    largest null statistic when that is higher (a tail heavier than the scaled chi-square)."""
     rng = np.random.default_rng(3)
     fams = [("a", 1), ("b", 3), ("c", 6)]
     draws = [[decide.Score(f, p, float(2.0 * rng.chisquare(p)), 0.0, np.zeros(p), np.ones(p)) for f, p in fams]
@@ -130,7 +131,9 @@ def test_calibration_recovers_the_scale_of_chi_square_draws():
     assert cal.alpha_family == pytest.approx(0.01)  # min(1 %, 5 % / 3)
     for f, p in fams:
         assert cal.scale[f] == pytest.approx(2.0, rel=0.15)
-        assert cal.threshold[f] == pytest.approx(cal.scale[f] * chi2.ppf(0.99, p))
+        largest = max(s.statistic for draw in draws for s in draw if s.effect == f)
+        assert cal.null_max[f] == largest
+        assert cal.threshold[f] == pytest.approx(max(cal.scale[f] * chi2.ppf(0.99, p), largest))
 
 
 def test_confidence_is_the_recording_level_probability():

@@ -196,7 +196,8 @@ class Evaluator:
         self.k = nominal.n_units
         self._traj: dict = {}
         self._act: dict = {}
-        self.base = CorrectedModel(nominal)
+        s = nominal.sensors  # the vehicle file's own biases and delay are part of the nominal model
+        self.base = CorrectedModel(nominal, replay.SensorCorrection(tuple(s.gyro_bias), tuple(s.accel_bias), s.delay))
         self.traj0 = self.trajectory(self.base.correction)
 
     def trajectory(self, corr: replay.SensorCorrection) -> replay.Trajectory:

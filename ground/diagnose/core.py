@@ -1,4 +1,4 @@
-"""The diagnosis: replay, locate, name (fit every candidate, then pairs, then a sparse term), show.
+"""The diagnosis: estimate -> disturbance -> candidates -> decide -> report (README "Diagnose").
 
 `diagnose(recording, vehicle)` returns a frozen `Diagnosis` holding the report of
 spec/recording.md section 2 (`report`) and the arrays the HTML report plots. Pure apart from
@@ -18,8 +18,6 @@ from scipy.signal import savgol_filter
 from onboard import model
 from onboard.vehicle import Vehicle
 
-from scipy.stats import chi2 as chi2_dist
-
 from . import decide, locate, null, replay, sparse
 from .candidates import (CHANNEL_AXIS, CHANNELS, CorrectedModel, Evaluator, Fit, SegmentedEvaluator,
                          candidates_for, chi2, combine, fit)
@@ -31,8 +29,10 @@ WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re
 RANK_TOP = 4  # significant candidates fitted nonlinearly to rank them
 SECOND_MIN_GAIN = 0.15  # a second effect must add this share of the first one's held-out drop
 LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn)
+MIN_DRAWS = 2  # fewer calibrated null draws than this: no finding (the thresholds would be guesses)
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
-Z_GATE = 2.5  # a finding's held-out improvement must exceed Z_GATE sd of the held-out chi-square
+Z_GATE = 2.5  # the data-driven `unknown` term (not calibrated by the null draws) must lower the
+# held-out chi-square by 2 Z_GATE of its sd, and pass the never-worse gate
 
 PHRASES = {
     "thrust_inflow": "grows with the inflow along the jets (advance ratio, seed 000)",
@@ -61,7 +61,7 @@ class Diagnosis:
     residual0: np.ndarray = field(repr=False)  # (N, 12) nominal residual channels
     residual1: np.ndarray = field(repr=False)  # (N, 12) with the findings
     windows: list = field(repr=False)
-    fits: list = field(repr=False)  # every single-candidate Fit, ranked
+    fits: list = field(repr=False)  # the significant candidates' nonlinear fits, ranked
     shots: dict = field(repr=False)  # "starts", "length", "before", "after", "meas"
     mass_diag: np.ndarray = field(repr=False)
 
@@ -98,9 +98,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     _say(progress, f"estimating {rec.duration_s:.1f} s with the nominal model '{vehicle.name}' (EKF + RTS smoother)")
     try:
         ev = Evaluator(rec, vehicle)
-    except replay.ReplayError as exc:
-        if "overlap for only" not in str(exc):
-            raise
+    except replay.TooShort as exc:
         return _insufficient(rec, vehicle, str(exc).split(": ", 1)[-1], t_start)
     traj = ev.traj0
     res0 = ev.residual(ev.base)
@@ -118,7 +116,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         try:
             replay.grid_for(w)
             recs_w.append(w)
-        except replay.ReplayError:
+        except replay.TooShort:
             continue
     if not recs_w:
         return _insufficient(rec, vehicle, "no stretch where IMU, pressure and commands overlap long enough", t_start)
@@ -133,7 +131,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     scores = decide.linear_scores(ev_fit, cands, split_fit, res0_fit, vehicle) + [
         decide.bias_score([e.traj0 for e in evs], vehicle)]
     # --- calibrate on recordings of the null hypothesis (null.py)
-    sig = locate.sensor_noise(rec)
+    sig = locate.sensor_noise(rec, floor=True)
     rng = np.random.default_rng(seed)
     null_scores = []
     for b in range(draws):
@@ -183,7 +181,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         # threshold) and a fair share of the first one's held-out improvement
         best_pair = None
         for other in single[1:]:
-            gain, gain_h = decide.joint_gain(by_effect[best.candidate.effect], by_effect[other.candidate.effect])
+            gain, _ = decide.joint_gain(by_effect[best.candidate.effect], by_effect[other.candidate.effect])
             _say(progress, f"pair {best.candidate.effect}+{other.candidate.effect}: gain {gain:.1f} (threshold "
                            f"{cal.threshold[other.candidate.effect]:.1f})")
             if gain <= cal.threshold[other.candidate.effect]:
@@ -208,7 +206,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     unknown = None
     explained_now = final.explained if final is not None else 0.0
     final_res = ev.residual(final.model) if final is not None else res0
-    gate_unknown = max(2 * Z_GATE * math.sqrt(2.0 * n_h), cal.pooled_scale * float(chi2_dist.ppf(1 - cal.alpha_family, 6)))
+    gate_unknown = 2 * Z_GATE * math.sqrt(2.0 * n_h)
     if excess0 > gate_unknown and explained_now < UNKNOWN_IF_EXPLAINED_BELOW and not bias_named:
         _say(progress, "no known effect explains the residual: fitting a sparse data-driven term")
         alone = _unknown_term(ev, traj, vehicle, None, res0, split)
@@ -228,8 +226,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     extra = None
     if unknown is not None:
         extra = unknown["coefficients"]  # the data-driven term joins the corrected simulation
-        if unknown.get("first"):
+        if unknown.get("first"):  # the data-driven term alone explains more: it stands alone
             final_model = ev.base
+            chosen, final = [], None
     mdiag = replay.nominal_mass_diag(vehicle)
     shots = _shoot_holdout(ev, traj, split, ev.base, final_model, extra, mdiag)
     rejected = []
@@ -254,6 +253,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         findings.insert(0 if unknown.get("first") or not findings else len(findings), entry)
     est = traj.estimate
     warnings = []
+    if cal.draws < MIN_DRAWS:
+        warnings.append(f"only {cal.draws} null draw(s) could be made on this recording's grid: the thresholds "
+                        "are not calibrated, so no finding is named")
+        findings = []
     if est.divergences:
         warnings.append(f"the nominal model could not follow this recording: its estimator restarted "
                         f"{est.divergences} time(s); the vehicle file does not describe this vehicle, so no "
@@ -445,9 +448,7 @@ def _finding(f: Fit, vehicle: Vehicle, score, cal, n_fam: int) -> dict:
         out["statistic"] = round(score.statistic, 1)
         out["threshold"] = round(cal.threshold[c.effect], 1)
     if score is not None:
-        out["confidence"] = round(decide.confidence(score, cal, n_fam), 3) if score.effect == c.effect else None
-    if out["confidence"] is None:  # the second of a pair: its own family's score
-        out["confidence"] = round(min(1.0, explained + 0.5), 3)
+        out["confidence"] = round(decide.confidence(score, cal, n_fam), 3)
     return out
 
 

@@ -19,7 +19,7 @@ from the nominal model under this recording's commands, with its estimated senso
 family's null statistics give its scale c_j (S / c_j ~ chi2(p_j)): its own mean of S / p, not
 below the median of the families' scales. A family is significant when S_j > c_j chi2_p^-1(1 - a), with
 a = min(1 %, 5 % / families) (Bonferroni: at most 1 % false alarms per family, 5 % per
-recording). The reported confidence is 1 - families x p_j, the recording-level probability that
+recording), and never below the largest statistic of its null draws. The reported confidence is 1 - families x p_j, the recording-level probability that
 so large a statistic is not a false alarm.
 
 Cramer-Rao: the covariance of theta is c_j (J^T J)^-1 (Fisher information of the weighted
@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
+
+from onboard.vehicle import VehicleFileError
 
 ALPHA_FAMILY = 0.01
 ALPHA_RECORDING = 0.05
@@ -91,10 +93,10 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
     """`Score` of every candidate (module doc): the smoothed disturbance regressed on what each
     candidate would add to the generalised force; parameterless candidates get one direction,
     the effect switched on (lambda = 1)."""
-    from .replay import nominal_mass_diag
+    from onboard import model
 
     dist, sd = ev.disturbance()
-    M = nominal_mass_diag(vehicle)
+    M0 = model.mass_matrix(model.pack_params(vehicle), 1.0, 1.0)  # d enters through M0^-1 (estimate.py)
     step = max(1, int(round(DECORRELATE_S / ((split.train[1] - split.train[0]) * ev_dt(ev)))) if len(split.train) > 1 else 1)
     tr, ho = split.train[::step], split.holdout[::step]
     w = 1.0 / np.maximum(sd, 1e-9)
@@ -104,21 +106,30 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
     for c in cands:
         if c.effect == "imu_bias":
             continue
-        if c.n_params == 0:
-            cols = [ev.residual(c.apply((), ev.base)) - res0]
-            theta0 = np.zeros(1)
-        else:
-            theta0 = np.asarray(c.x0, float)
-            lo, hi = np.asarray(c.lower, float), np.asarray(c.upper, float)
-            scale = np.where(np.abs(theta0) > 0, np.maximum(np.abs(theta0), (hi - lo) * 0.01), (hi - lo) * 0.05)
-            cols = []
-            for j in range(c.n_params):
-                d = 0.01 * scale[j]
-                th = theta0.copy()
-                th[j] = th[j] + d if th[j] + d <= hi[j] else th[j] - d
-                cols.append((ev.residual(c.apply(th, ev.base)) - res0) / (th[j] - theta0[j]))
-        # what the candidate adds to the force, per unit of its parameters: -M dr/dtheta
-        F = [-(col[:, :6] * M) for col in cols]
+        try:
+            if c.n_params == 0:
+                cols = [ev.residual(c.apply((), ev.base)) - res0]
+                theta0 = np.zeros(1)
+            elif c.switch_on:
+                # a missing effect with one parameter: the residual without it is the one at 0,
+                # so the slope is the secant from 0 to its start value (a tiny lag would make the
+                # 5 ms actuator steps unstable, so no small step here)
+                theta0 = np.zeros(c.n_params)
+                cols = [(ev.residual(c.apply(c.x0, ev.base)) - res0) / float(c.x0[0])]
+            else:
+                theta0 = np.asarray(c.x0, float)
+                lo, hi = np.asarray(c.lower, float), np.asarray(c.upper, float)
+                scale = np.where(np.abs(theta0) > 0, np.maximum(np.abs(theta0), (hi - lo) * 0.01), (hi - lo) * 0.05)
+                cols = []
+                for j in range(c.n_params):
+                    d = 0.01 * scale[j]
+                    th = theta0.copy()
+                    th[j] = th[j] + d if th[j] + d <= hi[j] else max(th[j] - d, lo[j])
+                    cols.append((ev.residual(c.apply(th, ev.base)) - res0) / (th[j] - theta0[j]))
+        except (VehicleFileError, ZeroDivisionError):
+            continue  # a candidate the vehicle cannot take is no evidence either way
+        # what the candidate adds to the generalised force, per unit of its parameters: -M0 dr/dtheta
+        F = [-(col[:, :6] @ M0.T) for col in cols]
         # a direction the model cannot evaluate (non-finite) carries no evidence
         J_tr = np.nan_to_num(np.column_stack([(f[tr] * w[tr]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         J_ho = np.nan_to_num(np.column_stack([(f[ho] * w[ho]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
@@ -204,8 +215,10 @@ def calibrate(null_scores: list[list[Score]], families: list[str]) -> Calibratio
         # chi-square(1) to +-50 %, and a quiet family must not get a hair trigger
         c = max(own, pooled, 1e-6)
         scale[f] = c
-        thr[f] = c * float(chi2_dist.ppf(1.0 - alpha, p))
         nmax[f] = float(max(vals)) if vals else float("nan")
+        # matching the mean alone is lax when one direction dominates a p-parameter family (a
+        # weighted sum of chi-square(1) has the heavier tail): never below the largest null value
+        thr[f] = max(c * float(chi2_dist.ppf(1.0 - alpha, p)), nmax[f] if vals else 0.0)
     tsd = {f: np.std(np.array(v), axis=0, ddof=1) for f, v in thetas.items() if len(v) >= 2}
     return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax, tsd)
 

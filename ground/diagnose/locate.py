@@ -33,8 +33,9 @@ EDGE_S = 1.0
 NEFF_MAX_LAG_S = 5.0
 
 
-def sensor_noise(rec) -> dict:
-    """Estimated white-noise sigma of each stream, in the stream's units."""
+def sensor_noise(rec, floor: bool = False) -> dict:
+    """Estimated white-noise sigma of each stream, in the stream's units; with `floor`, not below
+    the estimator's floors (a quantised stream can show no spread between samples)."""
     out = {
         "gyro_rad_s": white_noise_sigma(rec.imu.gyro_frd_rad_s),
         "accel_m_s2": white_noise_sigma(rec.imu.accel_frd_m_s2),
@@ -47,6 +48,13 @@ def sensor_noise(rec) -> dict:
     if rec.mocap is not None:
         out["mocap_m"] = white_noise_sigma(rec.mocap.pos_ned_m)
         out["mocap_quat"] = white_noise_sigma(rec.mocap.quat_wxyz)
+    if floor:
+        from .estimate import SIGMA_FLOOR
+
+        env = 1000.0 * 9.81  # Pa per metre of fresh water: the depth floor in pressure units
+        lows = {"gyro_rad_s": SIGMA_FLOOR[0], "accel_m_s2": SIGMA_FLOOR[1], "pressure_pa": SIGMA_FLOOR[2] * env,
+                "attitude_rad": SIGMA_FLOOR[3], "mocap_m": SIGMA_FLOOR[4], "mocap_quat": SIGMA_FLOOR[5] / 2}
+        out = {k: np.maximum(v, lows[k]) for k, v in out.items()}
     return out
 
 
@@ -70,7 +78,7 @@ def with_extra_noise(rec, sigmas: dict, seed: int = 12345):
 
 def noise_realisation(ev: Evaluator, res0: np.ndarray) -> np.ndarray:
     """One realisation (N, 12) of sensor noise as it reaches the residual channels."""
-    noisy = Evaluator(with_extra_noise(ev.rec, sensor_noise(ev.rec)), ev.nominal)
+    noisy = Evaluator(with_extra_noise(ev.rec, sensor_noise(ev.rec)), ev.nominal, ev.lead)
     return noisy.residual(noisy.base) - res0
 
 

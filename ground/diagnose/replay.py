@@ -38,6 +38,7 @@ from . import estimate
 
 SMOOTH_S = 0.21  # Savitzky-Golay window for rates and accelerations (order 2)
 MOCAP_SMOOTH_S = 0.31  # Savitzky-Golay window for velocity from motion-capture position
+MIN_OVERLAP_S = 3.0  # shorter than this, the smoothing windows and the held-out edges leave nothing
 ACT_MAX_STEP_S = 0.005  # largest RK4 step of the actuator run
 SIGNALS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z", "depth", "roll", "pitch", "yaw")
 AXES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
@@ -45,6 +46,10 @@ AXES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
 
 class ReplayError(ValueError):
     """A recording that lacks what replay needs; the message says which stream."""
+
+
+class TooShort(ReplayError):
+    """IMU, pressure and commands overlap too briefly for the estimator and its smoothers."""
 
 
 @dataclass(frozen=True)
@@ -120,8 +125,8 @@ def grid_for(rec) -> tuple[np.ndarray, float]:
     dt = float(np.median(np.diff(rec.imu.time_s)))
     t0 = max(rec.imu.time_s[0], rec.pressure.time_s[0], rec.servo.time_s[0])
     t1 = min(rec.imu.time_s[-1], rec.pressure.time_s[-1])
-    if t1 - t0 < 20 * dt:
-        raise ReplayError(f"{rec.source}: IMU, pressure and commands overlap for only {t1 - t0:.2f} s")
+    if t1 - t0 < max(20 * dt, MIN_OVERLAP_S):
+        raise TooShort(f"{rec.source}: IMU, pressure and commands overlap for only {t1 - t0:.2f} s")
     n = int(np.floor((t1 - t0) / dt + 1e-9)) + 1
     return t0 + dt * np.arange(n), dt
 
@@ -206,8 +211,6 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
     gyro = _interp(t, imu_t, rec.imu.gyro_frd_rad_s) - np.asarray(corr.gyro_bias)
     accel = _interp(t, imu_t, rec.imu.accel_frd_m_s2) - np.asarray(corr.accel_bias)
     depth_raw = (_interp(t, rec.pressure.time_s, rec.pressure.press_abs_pa) - env.p_atm) / (env.rho * env.g)
-    z = _interp(t, rec.pressure.time_s - d, rec.pressure.press_abs_pa)
-    z = env.surface_depth + (z - env.p_atm) / (env.rho * env.g)
     w_s = _odd(round(SMOOTH_S / dt))
     w_m = _odd(round(MOCAP_SMOOTH_S / dt))
     command = held_commands(rec, vehicle, t)
