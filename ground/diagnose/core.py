@@ -160,8 +160,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     significant = [s for s in scores if s.effect not in skip and s.statistic > cal.threshold[s.effect]
                    and not (s.holdout_drop <= 0)]  # NaN (imu_bias) passes: it has no residual step
     # --- the significant force candidates (at most RANK_TOP, by their linear held-out drop) fitted by
-    # nonlinear least squares on the training blocks; ranked by the held-out chi-square drop of
-    # that fit, which sees the effect's own shape (fast transients the smoothed disturbance blurs)
+    # nonlinear least squares on the training blocks
     pool = sorted((s for s in significant if s.effect != "imu_bias"), key=lambda s: -s.holdout_drop)[:RANK_TOP]
     single: list[Fit] = []
     for s in pool:
@@ -171,7 +170,12 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}")
         if f.delta_holdout > 0:
             single.append(f)
-    single.sort(key=lambda f: -f.delta_holdout)
+    # rank by both kinds of evidence at once: the disturbance regression's held-out drop (which
+    # prefers the parsimonious force: a constant heave force is buoyancy, not four thrust scales)
+    # and the nonlinear fit's (which sees a transient's own shape), each relative to its best
+    lin_best = max([by_effect[f.candidate.effect].holdout_drop for f in single] + [1e-300])
+    nl_best = max([f.delta_holdout for f in single] + [1e-300])
+    single.sort(key=lambda f: -max(by_effect[f.candidate.effect].holdout_drop, 0.0) / lin_best * f.delta_holdout / nl_best)
     chosen: list[Fit] = []
     final = None
     if single:
