@@ -399,7 +399,9 @@ def test_demo_command_rejects_a_bad_vehicle_file(tmp_path, capsys):
     assert "bad.toml" in err and "Traceback" not in err
 
 
-def test_a_collaborator_that_raises_gives_safe_output_not_a_dead_loop(loop_pair):
+def test_a_collaborator_that_raises_gives_safe_output_not_a_dead_loop():
+    from onboard.link import Link
+
     class Broken:
         calls = 0
 
@@ -410,12 +412,17 @@ def test_a_collaborator_that_raises_gives_safe_output_not_a_dead_loop(loop_pair)
             Broken.calls += 1
             raise RuntimeError("gains went missing")
 
-    _, ground = loop_pair
-    loop = _five_ticks_armed_from_the_second(ground, Broken())
-    assert loop.armed and Broken.calls == 4 and loop.stats.step_errors == 4  # armed from the tick at 0.01 s
-    assert np.all(loop.command == 0.0)  # jets off, joints neutral
-    texts = [m.text for m in iter(lambda: ground.recv(0.3), None) if m.get_type() == "STATUSTEXT"]
-    assert any("gains went missing" in x for x in texts)
+    # a ground of its own: a udpin link keeps the first peer that speaks (issue 15), so the
+    # fixture's ground, locked on its own loop, would not hear this one
+    ground = Link("udpin:127.0.0.1:0")
+    try:
+        loop = _five_ticks_armed_from_the_second(ground, Broken())
+        assert loop.armed and Broken.calls == 4 and loop.stats.step_errors == 4  # armed from the tick at 0.01 s
+        assert np.all(loop.command == 0.0)  # jets off, joints neutral
+        texts = [m.text for m in iter(lambda: ground.recv(0.3), None) if m.get_type() == "STATUSTEXT"]
+        assert any("gains went missing" in x for x in texts)
+    finally:
+        ground.close()
 
 
 def test_an_overrun_is_recorded_with_the_phase_it_went_to(loop_pair):

@@ -597,7 +597,7 @@ from ground.cli import main as jetloop  # noqa: E402
     (["--imu-freeze", "4"], "--imu-freeze '4': expected T0:T1 with 0 <= T0 < T1"),
     (["--imu-nan", "4:3"], "--imu-nan '4:3': expected T0:T1 with 0 <= T0 < T1"),
     (["--depth-jump", "0.3"], "--depth-jump '0.3': expected OFFSET_M@T0[:T1] (the onset time @T0 is missing)"),
-    (["--json-sitl", "--loss", "0.1"], "fault injection works on the MAVLink endpoint, not with --json-sitl"),
+    (["--json-sitl", "--loss", "0.1"], "fault injection and --key work on the MAVLink endpoint, not with --json-sitl"),
 ])
 def test_malformed_fault_flags_exit_2_naming_the_flag(flags, message, capsys):
     assert jetloop(["hil", *flags, "--wait", "0.1", "--duration", "0.1"]) == 2
