@@ -39,9 +39,11 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit
+from onboard.files import read_bounded
 
 G_MSS = 9.80665  # ArduPilot GRAVITY_MSS, the mG scale of SCALED_IMU / RAW_IMU
 SEGMENT_GAP_S = 1.0  # a stop longer than this in a core stream splits the recording (segments())
+MAX_RECORDING_BYTES = 16_000_000_000  # a day of 100 Hz telemetry is ~1.5 GB
 MAX_TIME_S = 1e10  # vehicle time beyond 317 years (boot or UNIX time) is impossible: a damaged stamp
 # Physically possible sample values; beyond them (or NaN / inf) a sample is dropped and counted.
 ACCEL_MAX_M_S2 = 1000.0  # about 100 g: every IMU saturates well below
@@ -221,7 +223,7 @@ def read_recording(path) -> Recording:
     """Read a `.tlog` or dataflash `.bin` recording; raises `RecordingError` with the reason."""
     path = Path(path)
     try:
-        data = path.read_bytes()
+        data = read_bounded(path, MAX_RECORDING_BYTES)  # a regular file: never a device read whole
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read recording: {exc.strerror or exc}") from exc
     if not data:

@@ -32,6 +32,7 @@ from onboard.vehicle import Vehicle, VehicleFileError, load_vehicle
 
 from .plant import Plant
 from .tlog import FIXED_EPOCH_US, TlogWriter
+from onboard.files import read_text_bounded
 
 DEMO_COMMANDS = Path(__file__).resolve().parent.parent / "onboard" / "data" / "demo_commands.csv"
 PWM_MIN_US = 800
@@ -148,10 +149,13 @@ def vehicle_channels(v: Vehicle) -> list[int]:
     return sorted({*v.pwm.jet_channels, *v.pwm.azimuth_channels, *v.pwm.elevation_channels})
 
 
+MAX_COMMANDS_BYTES = 512_000_000  # a commands CSV of a day at 1 kHz is ~100 MB
+
+
 def read_commands(path: str | Path, v: Vehicle) -> CommandSchedule:
     """Read and parse a commands CSV for vehicle `v` (its `[pwm]` channels are required)."""
     try:
-        text = Path(path).read_text(encoding="utf-8-sig")
+        text = read_text_bounded(path, MAX_COMMANDS_BYTES)
     except (OSError, UnicodeDecodeError) as exc:
         reason = getattr(exc, "strerror", None) or exc
         raise CommandsFileError(str(path), None, f"cannot read commands file: {reason}") from None

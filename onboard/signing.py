@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.files import read_bounded
 
 SIGNING_EPOCH_UNIX_S = 1_420_070_400  # 2015-01-01T00:00:00Z, MAVLink 2 signing time origin
 SIGNED_FLAG = 0x01  # MAVLINK_IFLAG_SIGNED, incompat_flags bit 0
@@ -88,7 +89,7 @@ def load_key(path) -> bytes:
     """A 32-byte signing key from a file: 32 raw bytes, or 64 hex digits (whitespace ignored)."""
     path = Path(path)
     try:
-        data = path.read_bytes()
+        data = read_bounded(path, 4096)  # 32 bytes or 64 hex digits; never a device read whole
     except OSError as exc:
         raise SigningError(f"key file {path}: cannot read: {exc.strerror or exc}") from exc
     if len(data) == KEY_BYTES:

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .files import read_text_bounded
+
 try:  # Python 3.11+
     import tomllib
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
@@ -34,6 +36,8 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 
 DEFAULT_VEHICLE = Path(__file__).parent / "data" / "asr4.toml"
 MAX_NAME = 64  # characters of a vehicle name
+MAX_FILE_BYTES = 1_000_000  # a vehicle file is a few kB: larger (or a device, a pipe) is refused unread
+MAX_PROBLEMS_SHOWN = 20  # an error lists this many problems and counts the rest
 
 EFFECT_IDS = (
     "thrust_inflow",
@@ -255,7 +259,7 @@ def load_vehicle(path: str | Path | None = None) -> Vehicle:
     """Load and validate a vehicle TOML (default: the reference vehicle asr4)."""
     path = Path(path) if path is not None else DEFAULT_VEHICLE
     try:
-        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not content
+        text = read_text_bounded(path, MAX_FILE_BYTES)  # a byte-order mark (Windows editors) is not content
     except (OSError, UnicodeDecodeError) as exc:  # not UTF-8 text: a clear error, not a traceback
         raise VehicleFileError(f"{path}: cannot read vehicle file: {getattr(exc, 'strerror', None) or exc}") from exc
     return parse_vehicle(text, source=str(path))
@@ -267,6 +271,8 @@ def parse_vehicle(text: str, source: str = "<string>") -> Vehicle:
         doc = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise VehicleFileError(f"{source}: not valid TOML: {exc}") from exc
+    except RecursionError:  # thousands of nested brackets: tomllib recurses
+        raise VehicleFileError(f"{source}: not a vehicle file: arrays or tables nested too deeply") from None
     return vehicle_from_dict(doc, source)
 
 
@@ -484,7 +490,10 @@ class _Errors:
             raise VehicleFileError(f"{self.source}: invalid vehicle file: {self.lines[0]}")
         if self.lines:
             head = f"{self.source}: invalid vehicle file ({len(self.lines)} problems)"
-            raise VehicleFileError(head + "\n  " + "\n  ".join(self.lines))
+            shown = self.lines[:MAX_PROBLEMS_SHOWN]
+            more = len(self.lines) - len(shown)
+            tail = [f"... and {more} more"] if more else []
+            raise VehicleFileError(head + "\n  " + "\n  ".join(shown + tail))
 
 
 def _replace_path(obj, parts: list[str], value, full_key: str):
