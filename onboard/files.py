@@ -20,7 +20,9 @@ def read_bounded(path, limit: int) -> bytes:
         st = os.fstat(f.fileno())
         if not stat.S_ISREG(st.st_mode):
             raise OSError(errno.EINVAL, "not a regular file (a device, pipe or directory)", str(path))
-        data = f.read(limit + 1)
+        # read(n) allocates n bytes up front: ask for what the file holds (one more byte tells a
+        # file that grew past the limit meanwhile)
+        data = f.read(min(limit, st.st_size) + 1)
     if len(data) > limit:
         raise OSError(errno.EFBIG, f"larger than {limit:,} bytes: not a file of this kind", str(path))
     return data
