@@ -15,7 +15,8 @@ State (NX = 24), one flat vector:
     0:3 NED position, 3:6 ZYX Euler angles (roll, pitch, yaw), 6:12 nu = [u v w p q r],
     12:18 d, 18:21 gyro bias (rad/s), 21:24 accelerometer bias (m/s^2).
 The actuators (propeller speeds, joint angles, seed-004 filter states) depend on the commands
-only (spec 4), so they are integrated once beforehand (`replay.actuator_run`) and enter as inputs.
+only (spec 4), so they are integrated once beforehand (`replay.actuator_run_commands`) and enter
+as inputs.
 
 Measurements (spec 5), each a scalar sequential update (diagonal R):
     gyro = w + b_g;  accel = v' + w x v - R^T [0, 0, g] + b_a  (v' from the model, so the

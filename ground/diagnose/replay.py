@@ -8,14 +8,15 @@ Pure math on arrays: a `Recording` and a parameter vector in, frozen results out
    commands, with a generalised-force disturbance and IMU biases), so horizontal velocity comes
    from the dynamics and the measurements together, with or without motion capture.
    Commands are the SERVO_OUTPUT_RAW PWM held from the sample on (spec 6).
-2. `actuator_run` integrates what the actuators do (propeller speeds, joint angles, the seed-004
-   transient filters) from the commands alone: it does not depend on the body's motion, so one
-   continuous run gives the actuator state at every instant without open-loop drift.
-3. `model_acceleration` evaluates the model's nu' at every reconstructed state, and
-   `force_residual` is what the measured motion needed minus what the model gives:
-       r = M_nom (nu'_measured - nu'_model(x_measured, u))   (Fossen 2011 eq. 6.1, rearranged)
-   with both sides passed through the same Savitzky-Golay smoother, so the smoothing's lag
-   at a command step cancels.
+2. `actuator_run_commands` (`actuator_run_lead` after a window's lead-in) integrates what the
+   actuators do (propeller speeds, joint angles, the seed-004 transient filters) from the
+   commands alone: it does not depend on the body's motion, so one continuous run gives the
+   actuator state at every instant without open-loop drift.
+3. `model_acceleration` evaluates the model's nu' at every estimated state, and
+   `acceleration_residual` is what the measured motion needed minus what the model gives:
+       r = nu'_measured - nu'_model(x_estimated, u)   (Fossen 2011 eq. 6.1, rearranged)
+   with both sides passed through the same Savitzky-Golay filter, so the smoothing's lag at a
+   command step cancels (times the nominal mass, a generalised force).
 4. `shoot` simulates short windows, each started from the reconstructed state (multiple
    shooting), and returns the predicted sensor signals to compare with the recording.
 """
