@@ -285,6 +285,12 @@ class Fit:
     model: CorrectedModel = field(repr=False, default=None)
 
 
+def parameter_scale(theta0, lo, hi) -> np.ndarray:
+    """A parameter's natural size for steps and scaling: |theta0|, not below 1 % of its range
+    (5 % of the range where theta0 is 0)."""
+    return np.where(np.abs(theta0) > 0, np.maximum(np.abs(theta0), (hi - lo) * 0.01), (hi - lo) * 0.05)
+
+
 def chi2(res: np.ndarray, split: Split, idx) -> tuple[float, np.ndarray]:
     z = res[idx][:, split.active] / split.sigma[split.active]
     per = np.zeros(len(split.active))
@@ -301,7 +307,7 @@ def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: Co
     theta0 = np.array(cand.x0 if x0 is None else x0, float)
     lo, hi = np.array(cand.lower, float), np.array(cand.upper, float)
     theta0 = np.clip(theta0, lo, hi)
-    scale = np.where(np.abs(theta0) > 0, np.maximum(np.abs(theta0), (hi - lo) * 0.01), (hi - lo) * 0.05)
+    scale = parameter_scale(theta0, lo, hi)
     prior_w = 0.3  # weak pull to the start: a parameter the data do not see stays put
 
     def fun(th):

@@ -39,6 +39,8 @@ from scipy.stats import chi2 as chi2_dist
 
 from onboard.vehicle import VehicleFileError
 
+from .candidates import parameter_scale
+
 ALPHA_FAMILY = 0.01
 ALPHA_RECORDING = 0.05
 UNTESTABLE_REL_SD = 0.5
@@ -119,7 +121,7 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
             else:
                 theta0 = np.asarray(c.x0, float)
                 lo, hi = np.asarray(c.lower, float), np.asarray(c.upper, float)
-                scale = np.where(np.abs(theta0) > 0, np.maximum(np.abs(theta0), (hi - lo) * 0.01), (hi - lo) * 0.05)
+                scale = parameter_scale(theta0, lo, hi)
                 cols = []
                 for j in range(c.n_params):
                     d = 0.01 * scale[j]
