@@ -75,7 +75,14 @@ P_TF = _at("effects.azimuth_transient.<rows as state space>", 8 * len(TRANSIENT_
 # anchor (seed 001 free-decay rig). Zero unless a `Plant` is built with `rig_stiffness`.
 P_RIG_K = _at("rig.stiffness", 3)  # N/m along NED x, y, z
 P_RIG_ANCHOR = _at("rig.anchor", 3)  # m NED
-P_UNITS = _at("unit[*].position+neutral", 0)  # then 6 values per unit
+P_UNITS = _at("unit[*].position+neutral", 0)  # then 6 values per unit, then 4 per unit (below)
+# After the 6 k unit values, 4 per unit: [kind, time constant (s), T_min (N), T_max (N)].
+# kind 0: a vectored water-jet (spec 3; the other three are 0 and unused); kind 1: a fixed
+# two-way thruster (spec 3.1), whose 6 values are position and direction d, whose command and
+# state slot n_i hold its thrust in newtons, and whose joints stay at 0. One kernel, one path
+# per unit chosen by data: a jet-only vehicle runs exactly the arithmetic it always did.
+UNIT_TAIL = 4
+KIND_JET, KIND_FIXED = 0.0, 1.0
 
 ON_INFLOW, ON_MOTOR, ON_SERVO, ON_TRANSIENT, ON_SURFACE, ON_WALL, ON_CURRENT = (
     P_ON + EFFECT_IDS.index(e) for e in EFFECT_IDS
@@ -163,6 +170,14 @@ def pack_params(v: Vehicle) -> np.ndarray:
         elif key.startswith("unit[*]"):
             for u in v.units:
                 out += list(u.position) + list(u.neutral)
+            for f in v.fixed:
+                out += list(f.position) + list(f.direction)
+            out += [0.0] * (UNIT_TAIL * v.n_jets)
+            if v.fixed:
+                from .fixed import thrust_limits
+
+                t_min, t_max = thrust_limits(v.fixed_thruster)
+                out += [KIND_FIXED, v.fixed_thruster.time_constant, t_min, t_max] * len(v.fixed)
         else:
             val = v.get(key)
             out += list(val) if size > 1 else [float(val)]
@@ -177,9 +192,9 @@ def initial_state(v: Vehicle, depth_m: float = 0.5, command=None) -> np.ndarray:
     x[3] = 1.0
     if command is not None:
         lim = v.servo.angle_limit
-        k = v.n_units
-        x[lay.alpha] = np.clip(np.asarray(command)[k:2 * k], -lim, lim)
-        x[lay.beta] = np.clip(np.asarray(command)[2 * k:3 * k], -lim, lim)
+        k, j = v.n_units, v.n_jets  # a fixed thruster's joints stay at 0
+        x[lay.alpha][:j] = np.clip(np.asarray(command)[k:k + j], -lim, lim)
+        x[lay.beta][:j] = np.clip(np.asarray(command)[2 * k:2 * k + j], -lim, lim)
     return x
 
 
@@ -409,6 +424,41 @@ def rig_spring(x, R, p):
 
 
 @njit(cache=True)
+def fixed_thruster(x, u, p, nu_r, k, i, xdot, tau, thrust_out):
+    """A fixed two-way thruster (spec 3.1): F_i = T_i d_i at r_i, T_i its thrust in newtons.
+
+    The command u[i] is the static thrust of the PWM (the curve of `onboard.fixed`), clipped to
+    [T_min, T_max]; with `motor_lag` T' = (T_cmd - T) / time_constant, else T = T_cmd. No joints,
+    so no azimuth transient: their states stay at rest. The curve is a bollard table, so
+    `thrust_inflow` does not apply.
+    """
+    t = P_UNITS + 6 * k + UNIT_TAIL * i
+    T_cmd = min(max(u[i], p[t + 2]), p[t + 3])
+    if p[ON_MOTOR] > 0.5:
+        T = x[13 + i]
+        xdot[13 + i] = (T_cmd - T) / p[t + 1]
+    else:
+        T = T_cmd
+        xdot[13 + i] = 0.0
+    xdot[13 + k + i] = 0.0
+    xdot[13 + 2 * k + i] = 0.0
+    j = 13 + 3 * k + N_TF_STATES * i
+    for r in range(N_TF_STATES):
+        xdot[j + r] = 0.0
+    o = P_UNITS + 6 * i
+    rx, ry, rz = p[o], p[o + 1], p[o + 2]
+    fx, fy, fz = T * p[o + 3], T * p[o + 4], T * p[o + 5]
+    mx, my, mz = cross(rx, ry, rz, fx, fy, fz)
+    tau[0] += fx
+    tau[1] += fy
+    tau[2] += fz
+    tau[3] += mx
+    tau[4] += my
+    tau[5] += mz
+    thrust_out[i] = T
+
+
+@njit(cache=True)
 def jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust_out):
     """tau_jets + tau_transient of k units; writes actuator and filter derivatives into xdot.
 
@@ -421,6 +471,9 @@ def jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust_out):
     lim, nmax = p[P_ALIM], p[P_NMAX]
     gain = p[P_GAIN_T] if p[ON_TRANSIENT] > 0.5 else 0.0
     for i in range(k):
+        if p[P_UNITS + 6 * k + UNIT_TAIL * i] > 0.5:
+            fixed_thruster(x, u, p, nu_r, k, i, xdot, tau, thrust_out)
+            continue
         # Actuators
         n_cmd = min(max(u[i], 0.0), nmax)
         if p[ON_MOTOR] > 0.5:
@@ -539,6 +592,13 @@ def project(x, u, p):
         x[i] /= nq
     lim = p[P_ALIM]
     for i in range(k):
+        t = P_UNITS + 6 * k + UNIT_TAIL * i
+        if p[t] > 0.5:  # a fixed thruster: thrust without lag is its command; no joints
+            if p[ON_MOTOR] < 0.5:
+                x[13 + i] = min(max(u[i], p[t + 2]), p[t + 3])
+            x[13 + k + i] = 0.0
+            x[13 + 2 * k + i] = 0.0
+            continue
         if p[ON_MOTOR] < 0.5:
             x[13 + i] = min(max(u[i], 0.0), p[P_NMAX])
         for j in (13 + k + i, 13 + 2 * k + i):
@@ -634,8 +694,8 @@ def wrench_map(v: Vehicle, alpha=None, beta=None) -> np.ndarray:
     """
     k = v.n_units
     B = np.zeros((6, 3 * k))
-    for i, unit in enumerate(v.units):
-        rx, ry, rz = unit.position
+    for i, position in enumerate(v.unit_positions):
+        rx, ry, rz = position
         S = np.array([[0.0, -rz, ry], [rz, 0.0, -rx], [-ry, rx, 0.0]])
         B[0:3, 3 * i:3 * i + 3] = np.eye(3)
         B[3:6, 3 * i:3 * i + 3] = S
@@ -643,11 +703,12 @@ def wrench_map(v: Vehicle, alpha=None, beta=None) -> np.ndarray:
 
 
 def thrust_direction(v: Vehicle, alpha, beta) -> np.ndarray:
-    """d_i for every unit (k x 3) at joint angles alpha, beta (spec 3)."""
+    """d_i for every unit (k x 3) at joint angles alpha, beta (spec 3); a fixed thruster's own
+    direction (spec 3.1), whatever its angles."""
     return np.array([
         jet_frame(float(alpha[i]), float(beta[i]), u.neutral[0], u.neutral[1])[0]
         for i, u in enumerate(v.units)
-    ])
+    ] + [np.asarray(f.direction, float) for f in v.fixed]).reshape(v.n_units, 3)
 
 
 def effectiveness(v: Vehicle, alpha, beta) -> np.ndarray:

@@ -1,44 +1,64 @@
-"""PWM <-> actuator commands, the linear clipped maps of the vehicle file's `[pwm]` table."""
+"""PWM <-> actuator commands: the linear clipped maps of the vehicle file's `[pwm]` table for jets
+and joints, the thrust curve of `[fixed_thruster]` for fixed thrusters (`onboard.fixed`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from . import fixed
 from .vehicle import Vehicle
 
 N_CHANNELS = 16
+NO_PULSE_BELOW_US = 500.0  # a fixed thruster's width under this is no pulse: its ESC stops (T = 0)
+
+
+def _index(channels) -> np.ndarray:
+    return np.asarray(channels, dtype=int) - 1
 
 
 def pwm_to_command(v: Vehicle, pwm_us) -> np.ndarray:
     """Command vector [n_cmd..., alpha_cmd..., beta_cmd...] from PWM on channels 1..16.
 
-    Jets: jet_range -> 0..n_max; joints: servo_range -> -angle_limit..+angle_limit; clipped.
-    `pwm_us[c - 1]` is channel c.
+    Jets: jet_range -> 0..n_max (from `jet_neutral` if the file gives one); joints: servo_range
+    -> -angle_limit..+angle_limit; clipped. Fixed thrusters: their static thrust (N) from the
+    thrust curve, their joint slots 0. `pwm_us[c - 1]` is channel c.
     """
     pwm = np.asarray(pwm_us, dtype=float)
     jlo, jhi = v.pwm.jet_range
+    if v.pwm.jet_neutral is not None:  # two-way autopilot outputs: below neutral the jet is off
+        jlo = v.pwm.jet_neutral
     slo, shi = v.pwm.servo_range
     lim = v.servo.angle_limit
-    jets = pwm[np.array(v.pwm.jet_channels) - 1]
-    az = pwm[np.array(v.pwm.azimuth_channels) - 1]
-    el = pwm[np.array(v.pwm.elevation_channels) - 1]
+    jets = pwm[_index(v.pwm.jet_channels)]
+    az = pwm[_index(v.pwm.azimuth_channels)]
+    el = pwm[_index(v.pwm.elevation_channels)]
     n = np.clip((jets - jlo) / (jhi - jlo), 0.0, 1.0) * v.thruster.n_max
     a = np.clip((az - slo) / (shi - slo) * 2.0 - 1.0, -1.0, 1.0) * lim
     b = np.clip((el - slo) / (shi - slo) * 2.0 - 1.0, -1.0, 1.0) * lim
-    return np.concatenate([n, a, b])
+    if not v.fixed:
+        return np.concatenate([n, a, b])
+    widths = pwm[_index(v.pwm.fixed_channels)]
+    t = np.where(widths >= NO_PULSE_BELOW_US, fixed.thrust_of_pwm(v.fixed_thruster, widths), 0.0)
+    z = np.zeros(len(v.fixed))
+    return np.concatenate([n, t, a, z, b, z])
 
 
 def command_to_pwm(v: Vehicle, command) -> np.ndarray:
-    """PWM (us, integer) on channels 1..16 for a command vector; unused channels are 0."""
-    k = v.n_units
+    """PWM (us, integer) on channels 1..16 for a command vector; unused channels are 0.
+    A fixed thruster's width is the inverse of its thrust curve (`onboard.fixed.pwm_of_thrust`)."""
+    k, j = v.n_units, v.n_jets
     c = np.asarray(command, dtype=float)
     jlo, jhi = v.pwm.jet_range
+    if v.pwm.jet_neutral is not None:
+        jlo = v.pwm.jet_neutral
     slo, shi = v.pwm.servo_range
     lim = v.servo.angle_limit
     out = np.zeros(N_CHANNELS)
-    out[np.array(v.pwm.jet_channels) - 1] = jlo + np.clip(c[:k] / v.thruster.n_max, 0, 1) * (jhi - jlo)
-    for sl, ch in ((slice(k, 2 * k), v.pwm.azimuth_channels), (slice(2 * k, 3 * k), v.pwm.elevation_channels)):
-        out[np.array(ch) - 1] = slo + (np.clip(c[sl] / lim, -1, 1) + 1.0) / 2.0 * (shi - slo)
+    out[_index(v.pwm.jet_channels)] = jlo + np.clip(c[:j] / v.thruster.n_max, 0, 1) * (jhi - jlo)
+    for sl, ch in ((slice(k, k + j), v.pwm.azimuth_channels), (slice(2 * k, 2 * k + j), v.pwm.elevation_channels)):
+        out[_index(ch)] = slo + (np.clip(c[sl] / lim, -1, 1) + 1.0) / 2.0 * (shi - slo)
+    if v.fixed:
+        out[_index(v.pwm.fixed_channels)] = fixed.pwm_of_thrust(v.fixed_thruster, c[j:k])
     return np.rint(out).astype(int)
 
 

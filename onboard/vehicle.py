@@ -59,10 +59,12 @@ class VehicleFileError(ValueError):
 # `check` (one of the CHECKS below), `unit` (for messages and docs).
 
 def _key(unit: str, check: str = "finite", n: int | None = None, default: Any = dataclasses.MISSING,
-         lo: float | None = None, hi: float | None = None, hint: str = ""):
+         lo: float | None = None, hi: float | None = None, hint: str = "", per: str = "unit",
+         rows: bool = False):
     """`lo`..`hi`: the plausible range of the key (of each element of a vector), in `unit`;
-    `hint` is said when a value is out of it (the usual slip: grams for kg, rpm for rev/s)."""
-    return field(default=default, metadata={"unit": unit, "check": check, "n": n,
+    `hint` is said when a value is out of it (the usual slip: grams for kg, rpm for rev/s).
+    `n = -1`: a list of any length, "one per `per`"; `rows`: a list of such lists."""
+    return field(default=default, metadata={"unit": unit, "check": check, "n": n, "per": per, "rows": rows,
                                             "range": (lo, hi, hint) if lo is not None else None})
 
 
@@ -126,12 +128,57 @@ class Unit:
 
 
 @dataclass(frozen=True)
+class FixedUnit:
+    """[[fixed]]: a fixed two-way thruster (spec 3.1): where it is and which way positive thrust
+    pushes the vehicle (a unit vector, body FRD)."""
+
+    position: tuple = _key("m body FRD", "finite", 3, lo=-5.0, hi=5.0, hint="cm or mm?")
+    direction: tuple = _key("unit vector body FRD", "finite", 3)
+
+
+@dataclass(frozen=True)
+class FixedThruster:
+    """[fixed_thruster]: the thrust curve and motor lag shared by every [[fixed]] thruster.
+
+    Either a table (`table_pwm` increasing, `table_thrust` one row of newtons per entry of
+    `table_voltages`, `voltage` the supply: columns interpolated linearly between voltages) or
+    coefficients (`dead_band`, `forward`, `reverse`: outside the dead band, with s the fraction
+    of the way from its edge to the end of `pwm_range`, T = c1 s + c2 s^2 forward and
+    -(c1 s + c2 s^2) in reverse). `time_constant`: first-order lag of the thrust (`motor_lag`).
+    """
+
+    time_constant: float = _key("s", "positive", lo=1e-4, hi=10.0, hint="ms?")
+    pwm_range: tuple = _key("us [low, high]", "pwm", 2)
+    voltage: float | None = _key("V", "positive", default=None, lo=1.0, hi=1000.0)
+    table_voltages: tuple | None = _key("V", "positive", -1, default=None, lo=1.0, hi=1000.0,
+                                        per="row of table_thrust")
+    table_pwm: tuple | None = _key("us, increasing", "pwm", -1, default=None, per="table point")
+    table_thrust: tuple | None = _key("N", "finite", -1, default=None, lo=-1e5, hi=1e5,
+                                      per="table point", rows=True)
+    dead_band: tuple | None = _key("us [low, high]", "pwm", 2, default=None)
+    forward: tuple | None = _key("N [c1, c2]", "finite", 2, default=None, lo=-1e5, hi=1e5)
+    reverse: tuple | None = _key("N [c1, c2]", "finite", 2, default=None, lo=-1e5, hi=1e5)
+
+    @property
+    def kind(self) -> str:
+        return "table" if self.table_pwm is not None else "coefficients"
+
+
+@dataclass(frozen=True)
 class Pwm:
-    jet_channels: tuple = _key("channel numbers, one per unit", "channel", -1)
-    azimuth_channels: tuple = _key("channel numbers, one per unit", "channel", -1)
-    elevation_channels: tuple = _key("channel numbers, one per unit", "channel", -1)
-    jet_range: tuple = _key("us [low, high]", "pwm", 2)
-    servo_range: tuple = _key("us [low, high]", "pwm", 2)
+    """[pwm]: which channel drives what. A vehicle without jets leaves the jet keys out; one
+    without fixed thrusters leaves `fixed_channels` out. `jet_neutral` (optional): the width at
+    which a one-way jet stops, for an autopilot whose motor outputs are two-way with 1500 us as
+    neutral (ArduSub): jet_neutral..jet_range[1] -> 0..n_max, below it 0. Absent: jet_range[0]."""
+
+    jet_channels: tuple = _key("channel numbers, one per unit", "channel", -1, default=())
+    azimuth_channels: tuple = _key("channel numbers, one per unit", "channel", -1, default=())
+    elevation_channels: tuple = _key("channel numbers, one per unit", "channel", -1, default=())
+    jet_range: tuple = _key("us [low, high]", "pwm", 2, default=(1100.0, 1900.0))
+    servo_range: tuple = _key("us [low, high]", "pwm", 2, default=(1100.0, 1900.0))
+    jet_neutral: float | None = _key("us", "pwm", default=None)
+    fixed_channels: tuple = _key("channel numbers, one per [[fixed]] thruster", "channel", -1, default=(),
+                                 per="[[fixed]] thruster")
 
 
 @dataclass(frozen=True)
@@ -209,10 +256,27 @@ class Vehicle:
     effects: Effects
     source: str = "<memory>"
     envelope: Envelope = Envelope()  # optional [envelope]: absent, every key takes its default
+    fixed: tuple = ()  # of FixedUnit: [[fixed]] two-way thrusters (spec 3.1), after the jets
+    fixed_thruster: FixedThruster | None = None  # [fixed_thruster], present when `fixed` is
 
     @property
     def n_units(self) -> int:
+        """Every actuator unit: the vectored jets ([[unit]]) first, then the fixed thrusters."""
+        return len(self.units) + len(self.fixed)
+
+    @property
+    def n_jets(self) -> int:
         return len(self.units)
+
+    @property
+    def unit_kinds(self) -> tuple:
+        """"jet" or "fixed" for every unit, in command order."""
+        return ("jet",) * len(self.units) + ("fixed",) * len(self.fixed)
+
+    @property
+    def unit_positions(self) -> tuple:
+        """r_i of every unit (jets, then fixed thrusters), body FRD."""
+        return tuple(u.position for u in self.units) + tuple(f.position for f in self.fixed)
 
     def get(self, key: str) -> Any:
         """Value of a dotted vehicle-file key, e.g. `hydro.added_mass`."""
@@ -247,6 +311,13 @@ SECTIONS = {
     "envelope": Envelope,
 }
 OPTIONAL_SECTIONS = frozenset({"envelope"})  # may be left out; their keys have defaults
+# A vehicle with only fixed thrusters has no jets and no joints: [thruster] and [servo] may be
+# left out and then hold these stand-ins, which no term reads (no unit is a jet).
+NO_JETS = {
+    "thruster": {"diameter": 0.1, "kt": [0.0, 0.0, 0.0], "j_range": [0.0, 1.0], "n_max": 1.0,
+                 "motor_time_constant": 0.1},
+    "servo": {"angle_limit": 1.0, "rate_limit": 1.0, "time_constant": 0.1},
+}
 EFFECT_CLASSES = {
     eid: {"azimuth_transient": AzimuthTransient, "wall_proximity": WallProximity}.get(eid, Effect)
     for eid in EFFECT_IDS
@@ -256,8 +327,12 @@ EFFECT_CLASSES = {
 # --- loading -----------------------------------------------------------------------------------
 
 def load_vehicle(path: str | Path | None = None) -> Vehicle:
-    """Load and validate a vehicle TOML (default: the reference vehicle asr4)."""
+    """Load and validate a vehicle TOML (default: the reference vehicle asr4). A bare name that
+    is no file here but a packaged vehicle (`bluerov2_heavy`, `asr4`) loads that one."""
     path = Path(path) if path is not None else DEFAULT_VEHICLE
+    packaged = DEFAULT_VEHICLE.parent / f"{path.name}.toml"
+    if not path.exists() and path.parent == Path(".") and not path.suffix and packaged.is_file():
+        path = packaged
     try:
         text = read_text_bounded(path, MAX_FILE_BYTES)  # a byte-order mark (Windows editors) is not content
     except (OSError, UnicodeDecodeError) as exc:  # not UTF-8 text: a clear error, not a traceback
@@ -278,7 +353,7 @@ def parse_vehicle(text: str, source: str = "<string>") -> Vehicle:
 
 def vehicle_from_dict(doc: dict, source: str = "<dict>") -> Vehicle:
     err = _Errors(source)
-    top = {"name", "unit", "effects", *SECTIONS}
+    top = {"name", "unit", "fixed", "fixed_thruster", "effects", *SECTIONS}
     for key in doc:
         if key not in top:
             err.unknown(key, sorted(top))
@@ -286,16 +361,31 @@ def vehicle_from_dict(doc: dict, source: str = "<dict>") -> Vehicle:
     if not isinstance(name, str) or not name or not name.isprintable() or len(name) > MAX_NAME:
         # printed on terminals and in reports: a control character (an escape sequence) is refused
         err.add("name", f"a non-empty string of at most {MAX_NAME} printable characters", name)
+    raw_units = doc.get("unit")
+    raw_fixed = doc.get("fixed")
+    jetless = raw_units is None and raw_fixed is not None
     sections = {}
     for sec, cls in SECTIONS.items():
-        sections[sec] = _build(cls, doc.get(sec, {} if sec in OPTIONAL_SECTIONS else None), sec, err)
-    raw_units = doc.get("unit")
+        absent = {} if sec in OPTIONAL_SECTIONS else NO_JETS.get(sec) if jetless else None
+        sections[sec] = _build(cls, doc.get(sec, absent), sec, err)
     units = []
-    if not isinstance(raw_units, list) or not raw_units:
-        err.add("unit", "one or more [[unit]] tables", raw_units)
-    else:
+    if not jetless and (not isinstance(raw_units, list) or not raw_units):
+        err.add("unit", "one or more [[unit]] (vectored jet) or [[fixed]] (fixed thruster) tables", raw_units)
+    elif not jetless:
         for i, raw in enumerate(raw_units):
             units.append(_build(Unit, raw, f"unit[{i}]", err))
+    fixed = []
+    fixed_thruster = None
+    if raw_fixed is not None:
+        if not isinstance(raw_fixed, list) or not raw_fixed:
+            err.add("fixed", "one or more [[fixed]] tables", raw_fixed)
+        else:
+            for i, raw in enumerate(raw_fixed):
+                fixed.append(_build(FixedUnit, raw, f"fixed[{i}]", err))
+        fixed_thruster = _build(FixedThruster, doc.get("fixed_thruster"), "fixed_thruster", err)
+    elif "fixed_thruster" in doc:
+        err.add("fixed_thruster", "[[fixed]] thrusters for it to describe (or no [fixed_thruster])",
+                doc.get("fixed_thruster"))
     raw_effects = doc.get("effects")
     effects = {}
     if not isinstance(raw_effects, dict):
@@ -308,7 +398,8 @@ def vehicle_from_dict(doc: dict, source: str = "<dict>") -> Vehicle:
             effects[eid] = _build(cls, raw_effects.get(eid), f"effects.{eid}", err)
     err.raise_if_any()
     vehicle = Vehicle(
-        name=name, units=tuple(units), effects=Effects(**effects), source=source, **sections
+        name=name, units=tuple(units), effects=Effects(**effects), source=source,
+        fixed=tuple(fixed), fixed_thruster=fixed_thruster, **sections
     )
     _check_consistency(vehicle, err)
     err.raise_if_any()
@@ -346,8 +437,10 @@ def _expect(f) -> str:
     what = CHECKS[check][1]
     if n is None:
         return what
+    if f.metadata.get("rows"):
+        return f"a list of lists of {what.replace('a ', '', 1)}s, each one per {f.metadata['per']}"
     if n == -1:
-        return f"a list of {what.replace('a ', '', 1)}s, one per unit"
+        return f"a list of {what.replace('a ', '', 1)}s, one per {f.metadata.get('per', 'unit')}"
     return f"a list of {n} values, each {what}"
 
 
@@ -358,6 +451,11 @@ def _coerce(value, f):
     if n is None:
         ok = _number_ok(value, check)
         return ok, float(value) if ok else value
+    if f.metadata.get("rows"):
+        if not isinstance(value, list) or not value or not all(
+                isinstance(r, list) and r and all(_number_ok(v, check) for v in r) for r in value):
+            return False, value
+        return True, tuple(tuple(float(v) for v in r) for r in value)
     if not isinstance(value, list) or (n != -1 and len(value) != n) or not value:
         return False, value
     if not all(_number_ok(v, check) for v in value):
@@ -383,6 +481,8 @@ def _check_ranges(v: Vehicle, err: "_Errors") -> None:
                 continue
             lo, hi, hint = rng
             values = value if isinstance(value, tuple) else (value,)
+            if values and isinstance(values[0], tuple):  # a table: rows of values
+                values = tuple(x for row in values for x in row)
             bad = [x for x in values if not lo <= x <= hi]
             if bad:
                 full = f.metadata["unit"]
@@ -397,6 +497,10 @@ def _check_ranges(v: Vehicle, err: "_Errors") -> None:
         walk(getattr(v, sec), f"{sec}.")
     for i, u in enumerate(v.units):
         walk(u, f"unit[{i}].")
+    for i, u in enumerate(v.fixed):
+        walk(u, f"fixed[{i}].")
+    if v.fixed_thruster is not None:
+        walk(v.fixed_thruster, "fixed_thruster.")
     for eid in EFFECT_IDS:
         walk(getattr(v.effects, eid), f"effects.{eid}.")
 
@@ -407,30 +511,38 @@ def _check_full_rank(v: Vehicle, err: "_Errors") -> None:
     three units not on one line. (All units at one point gave a LinAlgError in the allocation.)"""
     import numpy as np
 
-    pos = np.array([u.position for u in v.units], float)
+    pos = np.array(v.unit_positions, float)
     r = pos - pos.mean(axis=0)
     scale = max(float(np.abs(r).max()), 1e-12)
     blocks = []
-    for ri in r / scale:  # moments in units of the layout's size, so the test is scale-free
+    for i, ri in enumerate(r / scale):  # moments in units of the layout's size: a scale-free test
         skew = np.array([[0, -ri[2], ri[1]], [ri[2], 0, -ri[0]], [-ri[1], ri[0], 0]])
-        blocks.append(np.vstack([np.eye(3), skew]))
+        block = np.vstack([np.eye(3), skew])
+        if i >= v.n_jets:  # a fixed thruster pushes along its direction only (spec 3.1)
+            block = block @ np.asarray(v.fixed[i - v.n_jets].direction, float)[:, None]
+        blocks.append(block)
     sv = np.linalg.svd(np.hstack(blocks), compute_uv=False)
     if len(sv) < 6 or sv[5] < 1e-3 * sv[0] or float(np.abs(r).max()) < 1e-3:
+        what = "units" if not v.fixed else "units and fixed thrusters"
         err.lines.append(
-            "unit: the units cannot produce every force and moment (their wrench map has rank < 6): "
-            "give at least three units at positions not on one line, at least 1 mm apart")
+            f"unit: the {what} cannot produce every force and moment (their wrench map has rank < 6): "
+            "give at least three units at positions not on one line, at least 1 mm apart"
+            + ("; fixed thrusters must push along at least six independent force-moment directions" if v.fixed else ""))
 
 
 def _check_consistency(v: Vehicle, err: "_Errors") -> None:
     _check_ranges(v, err)
     if not err.lines:
         _check_full_rank(v, err)
-    n = v.n_units
+    n = v.n_jets
     for key in ("jet_channels", "azimuth_channels", "elevation_channels"):
         if len(getattr(v.pwm, key)) != n:
             err.add(f"pwm.{key}", f"{n} channels, one per [[unit]]", list(getattr(v.pwm, key)))
+    if len(v.pwm.fixed_channels) != len(v.fixed):
+        err.add("pwm.fixed_channels", f"{len(v.fixed)} channels, one per [[fixed]] thruster",
+                list(v.pwm.fixed_channels))
     first_use: dict[int, str] = {}  # a channel drives one joint or jet: name where it repeats
-    for key in ("jet_channels", "azimuth_channels", "elevation_channels"):
+    for key in ("jet_channels", "azimuth_channels", "elevation_channels", "fixed_channels"):
         for c in getattr(v.pwm, key):
             if c in first_use:
                 err.add(f"pwm.{key}", f"each channel used once (channel {c} is already in "
@@ -440,6 +552,15 @@ def _check_consistency(v: Vehicle, err: "_Errors") -> None:
         lo, hi = getattr(v.pwm, key)
         if not lo < hi:
             err.add(f"pwm.{key}", "[low, high] with low < high", [lo, hi])
+    if v.pwm.jet_neutral is not None and not v.pwm.jet_range[0] <= v.pwm.jet_neutral < v.pwm.jet_range[1]:
+        err.add("pwm.jet_neutral", f"a width in jet_range [{v.pwm.jet_range[0]:g}, {v.pwm.jet_range[1]:g})",
+                v.pwm.jet_neutral)
+    for i, f in enumerate(v.fixed):
+        norm = math.sqrt(sum(c * c for c in f.direction))
+        if abs(norm - 1.0) > 1e-3:
+            err.add(f"fixed[{i}].direction", "a unit vector (norm 1 within 1e-3)", list(f.direction))
+    if v.fixed_thruster is not None:
+        _check_fixed_thruster(v.fixed_thruster, err)
     lo, hi = v.thruster.j_range
     if not lo < hi:
         err.add("thruster.j_range", "[min, max] with min < max", [lo, hi])
@@ -454,6 +575,54 @@ def _check_consistency(v: Vehicle, err: "_Errors") -> None:
                 v.envelope.min_depth_m)
     if v.environment.floor_depth <= v.environment.surface_depth:
         err.add("environment.floor_depth", "a NED z below surface_depth", v.environment.floor_depth)
+
+
+def _check_fixed_thruster(ft: FixedThruster, err: "_Errors") -> None:
+    """One curve, complete and usable: a table (increasing PWM, a row per voltage, the supply
+    within the table's voltages) or coefficients (dead band inside the PWM range)."""
+    w = "fixed_thruster"
+    table = [k for k in ("table_pwm", "table_thrust", "table_voltages", "voltage") if getattr(ft, k) is not None]
+    coef = [k for k in ("dead_band", "forward", "reverse") if getattr(ft, k) is not None]
+    lo, hi = ft.pwm_range
+    if not lo < hi:
+        err.add(f"{w}.pwm_range", "[low, high] with low < high", [lo, hi])
+    if table and coef:
+        err.lines.append(f"{w}: a table ({', '.join(table)}) or coefficients ({', '.join(coef)}), not both")
+        return
+    if not table and not coef:
+        err.lines.append(f"{w}: a thrust curve: table_pwm, table_thrust, table_voltages and voltage, "
+                         "or dead_band, forward and reverse")
+        return
+    if table:
+        missing = [k for k in ("table_pwm", "table_thrust", "table_voltages", "voltage") if k not in table]
+        if missing:
+            err.lines.append(f"{w}: a table needs {', '.join(missing)} too")
+            return
+        pwm = ft.table_pwm
+        if len(pwm) < 2 or any(b <= a for a, b in zip(pwm, pwm[1:])):
+            err.add(f"{w}.table_pwm", "at least two widths, strictly increasing", list(pwm))
+        if len(ft.table_thrust) != len(ft.table_voltages):
+            err.add(f"{w}.table_thrust", f"{len(ft.table_voltages)} rows, one per table_voltages entry",
+                    f"{len(ft.table_thrust)} rows")
+        for j, row in enumerate(ft.table_thrust):
+            if len(row) != len(pwm):
+                err.add(f"{w}.table_thrust[{j}]", f"{len(pwm)} values, one per table_pwm entry",
+                        f"{len(row)} values")
+        vs = ft.table_voltages
+        if any(b <= a for a, b in zip(vs, vs[1:])):
+            err.add(f"{w}.table_voltages", "strictly increasing", list(vs))
+        elif not min(vs) <= ft.voltage <= max(vs):
+            err.add(f"{w}.voltage", f"a supply within the table's {min(vs):g}-{max(vs):g} V", ft.voltage)
+        if not (pwm[0] <= lo and pwm[-1] >= hi):
+            err.add(f"{w}.pwm_range", f"within the table's {pwm[0]:g}-{pwm[-1]:g} us", [lo, hi])
+    else:
+        missing = [k for k in ("dead_band", "forward", "reverse") if k not in coef]
+        if missing:
+            err.lines.append(f"{w}: coefficients need {', '.join(missing)} too")
+            return
+        a, b = ft.dead_band
+        if not lo < a <= b < hi:
+            err.add(f"{w}.dead_band", f"[low, high] with {lo:g} < low <= high < {hi:g} (inside pwm_range)", [a, b])
 
 
 def _echo(value, limit: int = 80) -> str:

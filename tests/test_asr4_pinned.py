@@ -91,7 +91,6 @@ def record() -> dict[str, np.ndarray]:
     return out
 
 
-@pytest.mark.slow
 def test_asr4_outputs_are_bit_for_bit_those_pinned_before_issue_17():
     if not PINNED.exists():
         pytest.fail(f"{PINNED} is missing: it is written once, at the commit named in this file")
