@@ -25,6 +25,7 @@ SUBCOMMANDS = {
     "ground": ("ground.ground_cli", "ground station: live telemetry view, .tlog recorder, commands, stream rates, signing"),
     "soak": ("hil.soak", "an hour (or --duration) of random missions and faults in lock-step: deadlines, memory, packets"),
     "plot": ("ground.plot", "standard plots of a .tlog/.bin recording (HIL, sim or ArduSub) as PNGs and index.html"),
+    "campaign": ("ground.campaign.cli", "missions, prove cases or diagnoses by the hundred on Dask (local cluster or existing)"),
 }
 
 
