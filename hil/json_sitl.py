@@ -10,11 +10,18 @@ Protocol (ArduPilot `libraries/SITL/examples/JSON/readme.md` and `libraries/SITL
   attitude (roll, pitch, yaw) and/or quaternion (q1..q4 = w, x, y, z; SITL prefers it).
   SIM_JSON.cpp reads it with strstr + sscanf("[%f, %f, %f]"): a key's `[` must follow its `:`
   directly, so the reply is written without spaces after colons.
-- Lock-step by frame count: a new frame_count advances the plant by 1/frame_rate; the same
-  frame_count again (SITL re-sends after 1 s of silence) gets the same reply without stepping;
-  a smaller frame_count means SITL restarted, so the plant restarts from its initial state.
-PWM channels map to jets and joints through the vehicle's `[pwm]` table (onboard.pwm); a channel
-at 0 us (no output configured) reads as jets off and joints centred.
+- Lock-step by frame count: a new frame_count advances the plant by 1/frame_rate, at every
+  rate (1 Hz included: integrated in RK4 steps of at most 1 ms); the same frame_count again (SITL
+  re-sends after 1 s of silence) gets the same reply without stepping; a smaller frame_count
+  means SITL restarted, so the plant restarts from its initial state. A new frame_rate (SITL
+  walks SIM_RATE_HZ 1 Hz per frame towards its target) changes the step only: the vehicle, its
+  state and the physics clock go on.
+PWM channels map to jets, joints and fixed thrusters through the vehicle's `[pwm]` table
+(onboard.pwm). A channel at 0 us (no output configured) reads as jets off, thrusters off and
+joints centred; so does 1000 us on channels 9-16 in the first frame after a (re)start, which
+is what SITL sends there before its outputs are set up.
+- The reply is always finite JSON: a state that is not finite (a diverged vehicle) restarts the
+  vehicle from its initial state and is counted (`diverged`); no NaN or Infinity is written.
 """
 
 from __future__ import annotations
@@ -37,8 +44,8 @@ MAGIC_32 = 29569
 HEADER = struct.Struct("<HHI")
 PACKET_16 = struct.Struct("<HHI16H")
 PACKET_32 = struct.Struct("<HHI32H")
-MAX_STEP_S = 0.01  # a frame_rate below 100 Hz is simulated in 10 ms pieces (readme: max time step)
 PLANT_STEP_S = 0.001  # plant integration step: 1/frame_rate is split into steps of at most this
+UNSET_US = 1000  # SITL's first frame carries this on channels 9-16 before their outputs are set
 
 
 @dataclass(frozen=True)
@@ -77,9 +84,13 @@ def pack_servo_packet(frame_rate_hz: int, frame_count: int, pwm_us) -> bytes:
     raise PacketError(f"SITL sends 16 or 32 PWM channels, got {len(pwm)}")
 
 
-def command_from_pwm(v: Vehicle, pwm_us) -> np.ndarray:
-    """Commands from SITL PWM via the vehicle's [pwm] maps; 0 us (channel unused) = off / centred."""
+def command_from_pwm(v: Vehicle, pwm_us, first_frame: bool = False) -> np.ndarray:
+    """Commands from SITL PWM via the vehicle's [pwm] maps; 0 us (channel unused) = off / centred,
+    and in the first frame 1000 us on channels 9-16 too (SITL's value before setup)."""
     pwm = np.array(pwm_us, dtype=float)
+    if first_frame:
+        rest = pwm[8:16]
+        rest[rest == UNSET_US] = 0.0
     for ch in v.pwm.jet_channels:
         if ch <= len(pwm) and pwm[ch - 1] == 0:
             pwm[ch - 1] = v.pwm.jet_range[0]
@@ -99,18 +110,20 @@ def sensor_json(time_s: float, x, xdot, params, v: Vehicle) -> str:
     vel_ned = R @ np.asarray(x[7:10])
     roll, pitch, yaw = model.quat_to_euler(x[3:7])
     frame = {
-        "timestamp": round(float(time_s), 9),
+        "timestamp": round(float(time_s), 9) if math.isfinite(time_s) else 0.0,
         "imu": {"gyro": _vec(imu.gyro_frd_rad_s), "accel_body": _vec(imu.accel_frd_m_s2)},
         "position": _vec(x[0:3]),
         "velocity": _vec(vel_ned),
         "attitude": _vec((roll, pitch, yaw)),
         "quaternion": _vec(x[3:7]),
     }
-    return "\n" + json.dumps(frame, separators=(",", ":")) + "\n"
+    return "\n" + json.dumps(frame, separators=(",", ":"), allow_nan=False) + "\n"
 
 
 def _vec(values) -> list:
-    return [float(f"{float(c):.9g}") for c in values]
+    """Numbers as SITL's sscanf reads them; a non-finite value (which `handle` never lets through)
+    is written as 0, never as NaN or Infinity, which are not JSON."""
+    return [float(f"{float(c):.9g}") if math.isfinite(float(c)) else 0.0 for c in values]
 
 
 class JsonSitlBackend:
@@ -124,7 +137,7 @@ class JsonSitlBackend:
 
         self.vehicle = vehicle
         self._make = plant_factory or (lambda dt: Plant(vehicle, dt_s=dt, seed=seed, depth_m=depth_m, noise=False))
-        self.plant = None
+        self.plant = None  # built once per (re)start; its state is the vehicle's
         self.frame_rate_hz = 0
         self.last_frame = None
         self.last_reply = b""
@@ -132,18 +145,28 @@ class JsonSitlBackend:
         self.duplicates = 0
         self.lost_frames = 0
         self.resets = 0
+        self.rate_changes = 0
+        self.diverged = 0
         self.bad_packets = 0
 
-    def _restart(self, frame_rate_hz: int, state=None) -> None:
-        step = min(1.0 / frame_rate_hz, MAX_STEP_S)
-        self.substeps = max(1, math.ceil(step / PLANT_STEP_S - 1e-9))
-        self.step_s = step
-        self.plant = self._make(step / self.substeps)
-        if state is not None:
-            self.plant.state = state
-        self.frame_rate_hz = frame_rate_hz
-        self.time_base_s = self.time_s if state is not None else 0.0
+    def _restart(self) -> None:
+        """The vehicle from its initial state, the physics clock at 0."""
+        self.plant = self._make(PLANT_STEP_S)
+        self.time_base_s = 0.0
         self.frames_at_rate = 0
+        self.frame_rate_hz = 0
+        self.step_s = 0.0
+
+    def _set_rate(self, frame_rate_hz: int) -> None:
+        """A frame is 1/frame_rate of physics, in RK4 steps of at most PLANT_STEP_S. Only the step
+        changes: the vehicle goes on from its state, the clock from where it is."""
+        if self.frame_rate_hz:
+            self.rate_changes += 1
+        self.time_base_s = self.time_s
+        self.frames_at_rate = 0
+        self.frame_rate_hz = frame_rate_hz
+        self.step_s = 1.0 / frame_rate_hz
+        self.substeps = max(1, math.ceil(self.step_s / PLANT_STEP_S - 1e-9))
 
     @property
     def time_s(self) -> float:
@@ -165,22 +188,26 @@ class JsonSitlBackend:
         if self.plant is None or (self.last_frame is not None and pkt.frame_count < self.last_frame):
             if self.plant is not None:
                 self.resets += 1  # frame count went back: SITL restarted, so does the vehicle
-            self._restart(pkt.frame_rate_hz)
+            self._restart()
             self.last_frame = None
-        elif pkt.frame_rate_hz != self.frame_rate_hz:
-            self._restart(pkt.frame_rate_hz, state=self.plant.state)  # SIM_RATE_HZ changed
+        if pkt.frame_rate_hz != self.frame_rate_hz:
+            self._set_rate(pkt.frame_rate_hz)  # SIM_RATE_HZ changed: the step only
         if self.last_frame is not None and pkt.frame_count == self.last_frame:
             self.duplicates += 1
             return self.last_reply
         if self.last_frame is not None and pkt.frame_count > self.last_frame + 1:
             self.lost_frames += pkt.frame_count - self.last_frame - 1
+        first = self.last_frame is None
         self.last_frame = pkt.frame_count
         p = self.plant
-        p.set_command(command_from_pwm(self.vehicle, pkt.pwm_us))
-        p.advance((p.step_index + self.substeps) * p.dt_s)
+        p.set_command(command_from_pwm(self.vehicle, pkt.pwm_us, first_frame=first))
+        x = model.rk4_steps(p.state, p.command, p.params, self.step_s / self.substeps, self.substeps)
+        if not np.all(np.isfinite(x)):  # diverged: start the vehicle over rather than send NaN
+            self.diverged += 1
+            x = self._make(PLANT_STEP_S).state
+        p.state = x
         self.frames_at_rate += 1
         self.frames += 1
-        x = p.state
         xdot = np.zeros_like(x)
         model.derivative(x, p.command, p.params, xdot)
         self.last_reply = sensor_json(self.time_s, x, xdot, p.params, self.vehicle).encode()

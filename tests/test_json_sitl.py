@@ -4,6 +4,7 @@ SIM_JSON.cpp does (newline framing, strstr + sscanf("[%f, %f, %f]"))."""
 
 from __future__ import annotations
 
+import json
 import re
 import socket
 import struct
@@ -224,3 +225,88 @@ def test_jetloop_hil_json_sitl_command():
     assert [r["timestamp"] for r in replies] == pytest.approx([k / 400 for k in range(1, 21)])
     assert proc.returncode == 0, err
     assert "20 frames" in out
+
+
+# --- issue 17: the four protocol findings, and the BlueROV2 Heavy as ArduSub flies it --------
+
+HEAVY = load_vehicle("bluerov2_heavy")
+NEUTRAL_8 = [1500] * 8
+
+
+def _plant_after(v, t_s, pwm, depth_m, dt_s):
+    """The same vehicle in hil.plant, advanced `t_s` at `dt_s` (the cross-form check)."""
+    from hil.plant import Plant
+
+    p = Plant(v, dt_s=dt_s, depth_m=depth_m, noise=False, command=command_from_pwm(v, pwm))
+    p.advance(t_s)
+    return p.state
+
+
+def test_heavy_frame_at_400_then_1200_hz_is_one_flight():
+    """SITL at 400 Hz, then SIM_RATE_HZ 1200: the same plant goes on (no rebuild, no reset),
+    the clock is continuous, and the flight equals hil.plant's over the same 0.5 s."""
+    b = JsonSitlBackend(HEAVY, depth_m=1.0)
+    first = NEUTRAL_8 + [1000] * 8  # what SITL's first frame carries on 9-16
+    r = sitl_parse(b.handle(sitl_frame(400, 0, first)))
+    # Hand-computed: thrusters at neutral, level at 1 m: it sinks with (W - B) / (m + Z_wdot)
+    e, body, hydro = HEAVY.environment, HEAVY.body, HEAVY.hydro
+    net_down = body.mass * e.g - e.rho * e.g * body.volume  # 0.9810 N
+    az = net_down / (body.mass + hydro.added_mass[2])  # 0.03048 m/s^2
+    assert r["accel_body"][2] == pytest.approx(az - e.g, abs=1e-4)
+    assert r["timestamp"] == pytest.approx(1 / 400)
+    plant = b.plant
+    for k in range(1, 100):
+        b.handle(sitl_frame(400, k, NEUTRAL_8 + [0] * 8))
+    stamps = []
+    for k in range(100, 400):
+        stamps.append(sitl_parse(b.handle(sitl_frame(1200, k, NEUTRAL_8 + [0] * 8)))["timestamp"])
+    assert b.plant is plant and b.rate_changes == 1 and b.resets == 0
+    assert stamps == pytest.approx([0.25 + j / 1200 for j in range(1, 301)], abs=1e-9)  # 9 decimals
+    want = _plant_after(HEAVY, 0.5, NEUTRAL_8, 1.0, 1 / 2400)
+    assert b.plant.state[:13] == pytest.approx(want[:13], abs=1e-9)
+    assert b.plant.state[9] == pytest.approx(0.0116, abs=5e-4)  # w(0.5 s): sinking, damped
+
+
+def test_heavy_frame_forward_pilot_input_moves_it_forward_at_1200_hz():
+    """ArduSub's forward stick on the heavy frame: motors 1, 2 below neutral, 3, 4 above."""
+    b = JsonSitlBackend(HEAVY, depth_m=1.0)
+    pwm = [1400, 1400, 1600, 1600] + [1500] * 4 + [0] * 8
+    for k in range(1200):
+        r = sitl_parse(b.handle(sitl_frame(1200, k, pwm)))
+    assert r["timestamp"] == pytest.approx(1.0)
+    assert r["velocity"][0] > 0.1 and abs(r["velocity"][1]) < 1e-6
+    assert b.plant.state[:13] == pytest.approx(_plant_after(HEAVY, 1.0, pwm, 1.0, 1 / 1200)[:13], abs=1e-9)
+
+
+def test_below_100_hz_a_frame_is_still_one_over_frame_rate():
+    """At 50 Hz a frame is 20 ms of physics (it was 10 ms: the clock ran at half speed)."""
+    b = JsonSitlBackend(HEAVY, depth_m=1.0)
+    pwm = [1500] * 4 + [1600] * 4  # vertical motors: positive output pushes down
+    stamps = [sitl_parse(b.handle(sitl_frame(50, k, pwm)))["timestamp"] for k in range(10)]
+    assert stamps == pytest.approx([k / 50 for k in range(1, 11)], abs=1e-12)
+    assert b.substeps == 20
+    assert b.plant.state[:13] == pytest.approx(_plant_after(HEAVY, 0.2, pwm, 1.0, 0.001)[:13], abs=1e-12)
+
+
+def test_first_frame_1000_us_on_channels_9_to_16_is_unused_later_it_is_a_command():
+    b = JsonSitlBackend(V, depth_m=0.5)
+    pwm = [1100] * 4 + [1500] * 4 + [1000] * 8
+    b.handle(sitl_frame(400, 0, pwm))
+    k = V.n_units
+    assert b.plant.command[2 * k:3 * k] == pytest.approx([0.0] * k)  # elevations centred, not -80 deg
+    b.handle(sitl_frame(400, 1, pwm))
+    assert b.plant.command[2 * k:3 * k] == pytest.approx([-V.servo.angle_limit] * k)
+
+
+def test_a_diverged_vehicle_never_puts_nan_into_the_json():
+    b = JsonSitlBackend(V, depth_m=0.5)
+    b.handle(sitl_frame(400, 0, [1500] * 16))
+    b.plant.state[7] = 1e200  # a surge speed whose quadratic damping overflows
+    reply = b.handle(sitl_frame(400, 1, [1500] * 16))
+
+    def refuse(name):
+        raise AssertionError(f"{name} in the reply")
+
+    frame = json.loads(reply, parse_constant=refuse)
+    assert b.diverged == 1 and frame["position"][2] == pytest.approx(0.5)  # started over
+    assert sitl_parse(reply)["timestamp"] == pytest.approx(2 / 400)
