@@ -4,6 +4,7 @@
                     [--lockstep | --realtime] [--output hil|pwm] [--allocator qp|baseline]
                     [--no-compensation] [--no-yaw-preview] [--rate HZ] [--duration S] [--key KEYFILE] [--ground-system ID]...
                     [--peer HOST:PORT] [--ground-peer HOST:PORT] [--autopilot SYS[:COMP]]
+                    [--identity auto|vehicle|companion] [--params FILE]
 
 `--lockstep` runs on the vehicle clock of the sensor stream and answers every SYSTEM_TIME frame
 marker (pair it with `jetloop hil --lockstep`); `--realtime` (default) ticks on the wall clock,
@@ -21,6 +22,12 @@ the first sender of valid (with `--key`, signed) MAVLink, until it is silent for
 counted in the NAMED_VALUE_FLOAT telemetry and in the summary printed at exit, every link's
 counts included. Nothing listens on a default address: `--link` is required and both links bind
 only the host they name (udpout to 127.0.0.1 binds 127.0.0.1).
+
+Ground stations (onboard.microservices): as the vehicle's controller the loop is component 1,
+MAV_TYPE_SUBMARINE, to the ground; beside a flight stack (ArduPilot, PX4 heartbeats on --link) it
+is its companion, component 191 (`--identity` fixes either). MAVLink parameters (onboard.params)
+persist to `--params FILE` (default: the vehicle file with the suffix .params; asr4.params in the
+working directory for the reference vehicle) and are read from it at start.
 """
 
 from __future__ import annotations
@@ -58,6 +65,12 @@ def configure(parser) -> None:
     parser.add_argument("--ground-peer", default=None, metavar="HOST:PORT", help="the same for --ground udpin")
     parser.add_argument("--autopilot", default=None, metavar="SYS[:COMP]",
                         help="the only source of sensor data on --link (default: the first system sending it there)")
+    parser.add_argument("--identity", choices=("auto", "vehicle", "companion"), default="auto",
+                        help="to the ground: component 1 as the vehicle, 191 as a flight stack's companion "
+                             "(default auto: companion once --link shows an ArduPilot/PX4 heartbeat)")
+    parser.add_argument("--params", default=None, metavar="FILE",
+                        help="MAVLink parameter file, read at start and written on each PARAM_SET "
+                             "(default: beside the vehicle file, V.params)")
     parser.add_argument("--rate", type=float, default=None, metavar="HZ", help="control rate (default: the IMU rate)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of loop time")
     parser.add_argument("--idle-exit", type=float, default=None, metavar="S",
@@ -66,6 +79,7 @@ def configure(parser) -> None:
 
 def run(args) -> int:
     from onboard.link import Link, LinkError
+    from onboard.params import ParameterFileError, default_path
     from onboard.loop import LoopConfig, OnboardLoop, VehicleClock, WallClock
     from onboard.signing import GCS_SYSTEMS, SigningError, load_key
     from onboard.vehicle import VehicleFileError, load_vehicle
@@ -103,9 +117,17 @@ def run(args) -> int:
     config = LoopConfig(control_rate_hz=rate, output=args.output, allocator=args.allocator,
                         compensation=not args.no_compensation, yaw_preview=not args.no_yaw_preview,
                         estimator_backend=args.estimator,
-                        signing_key=key, ground_systems=ground_systems, autopilot=autopilot)
+                        signing_key=key, ground_systems=ground_systems, autopilot=autopilot,
+                        identity=args.identity, parameter_file=str(args.params or default_path(args.vehicle)))
     clock = VehicleClock() if args.lockstep else WallClock()
-    loop = OnboardLoop(vehicle, link, clock, config, ground=ground)
+    try:
+        loop = OnboardLoop(vehicle, link, clock, config, ground=ground)
+    except ParameterFileError as exc:
+        link.close()
+        if ground is not None:
+            ground.close()
+        print(f"jetloop onboard: {exc}", file=sys.stderr)
+        return 2
     print(f"jetloop onboard: {vehicle.name} on {args.link} ({'lock-step' if args.lockstep else 'real time'}, "
           f"{rate:g} Hz, {args.allocator}{'' if config.compensation else ', no compensation'}"
           f"{', commands must be signed' if key else ''})", flush=True)

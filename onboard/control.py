@@ -212,14 +212,7 @@ class Controller:
         self._on_surface = vehicle.effects.on("surface_proximity")
         self._on_wall = vehicle.effects.on("wall_proximity")
         self._on_current = vehicle.effects.on("current")
-        g = self.gains
-        self._gain_vec = np.array([
-            g.depth_bandwidth_rad_s, g.attitude_bandwidth_rad_s, g.yaw_bandwidth_rad_s,
-            g.velocity_bandwidth_rad_s, g.damping_ratio, g.integral_share,
-        ])
-        self._flags = np.array([float(g.feedforward), float(self._on_surface), float(self._on_wall),
-                                float(self._on_current)])
-        self._yaw_ref_gains = np.array([g.yaw_reference_rad_s, g.max_yaw_rate_rad_s, g.velocity_reference_s])
+        self.set_gains(self.gains)
         hydro = vehicle.hydro
         # yaw feed-forward along the reference (eq. 1, yaw row, level and deep): I_z r' + d1 r + d2 |r| r
         self._yaw_ff = (float(model.mass_matrix(self.params, 1.0, 1.0)[5, 5]),
@@ -231,6 +224,20 @@ class Controller:
             _saturation(z6, got, self.capacity, True)
         yaw_reference(0.0, 0.0, 0.0, 0.0, 0.0, self._yaw_ref_gains, 0.01, 1)
         _yaw_feedforward(0.0, 0.0, 0.0, 0.0, 0.0, self._yaw_ref_gains, 0.01, 2, 1.0, 0.0, 0.0)
+
+    def set_gains(self, gains: Gains) -> None:
+        """New gains from the next step on (a MAVLink parameter set, onboard.params): references and
+        integrators are kept, so a gain change in flight does not restart the setpoint's approach."""
+        if not isinstance(gains, Gains):
+            raise ValueError(f"Controller.set_gains: expected Gains, got {type(gains).__name__}")
+        self.gains = g = gains
+        self._gain_vec = np.array([
+            g.depth_bandwidth_rad_s, g.attitude_bandwidth_rad_s, g.yaw_bandwidth_rad_s,
+            g.velocity_bandwidth_rad_s, g.damping_ratio, g.integral_share,
+        ])
+        self._flags = np.array([float(g.feedforward), float(self._on_surface), float(self._on_wall),
+                                float(self._on_current)])
+        self._yaw_ref_gains = np.array([g.yaw_reference_rad_s, g.max_yaw_rate_rad_s, g.velocity_reference_s])
 
     @property
     def gains_si(self) -> dict:

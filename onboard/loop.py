@@ -275,6 +275,8 @@ class LoopConfig:
     ground_systems: tuple = GCS_SYSTEMS  # source systems whose commands/setpoints count (others: foreign)
     autopilot: tuple | None = None  # (system, component 0=any) whose sensor data counts; None: first seen on the main link
     max_stamp_skew_s: float = 1.0  # a sensor stamp further than this from the newest is held (StampGuard)
+    identity: str = "auto"  # to the ground: "vehicle" (component 1), "companion" (191), "auto" (onboard.microservices.Identity)
+    parameter_file: str | None = None  # where MAVLink parameter sets persist and are read at start (onboard.params)
 
     def __post_init__(self):
         if not (math.isfinite(self.control_rate_hz) and self.control_rate_hz > 0):
@@ -477,6 +479,7 @@ class OnboardLoop:
         self._imu_rank = len(IMU_RANK)
         self._last_imu_stamp = -math.inf  # the newest IMU's own time stamp (s)
         self._has_pressure2 = False
+        self._depth_seen = False  # a depth sample has counted (SYS_STATUS pressure health)
         self._est_started = False
         self._next_tick = None
         self._marker_t = -math.inf  # newest SYSTEM_TIME: the stream is complete up to it
@@ -497,6 +500,12 @@ class OnboardLoop:
                 # in real time a command reaches the servos up to a period late: at the rate limit
                 # that is rate * period (0.05 rad at 5 rad/s and 100 Hz) of honest mismatch
                 joint_tolerance_rad=0.02 if clock.lockstep else 0.1))
+        from .microservices import MESSAGES, Microservices
+
+        self._service_messages = MESSAGES
+
+        self._rx_link = "main"  # the link the message being handled came from
+        self.services = Microservices(self)  # identity, parameters, requests, mission (ground stations)
         if warm_up:
             self._warm_up()
 
@@ -511,7 +520,7 @@ class OnboardLoop:
         from .sensors import ActuatorSample, ImuSample, PressureSample
 
         with Link("udpin:127.0.0.1:0") as nowhere:  # never spoken to: its sends go nowhere
-            scratch = OnboardLoop(self.vehicle, nowhere, VehicleClock(), replace(self.config, signing_key=None),
+            scratch = OnboardLoop(self.vehicle, nowhere, VehicleClock(), replace(self.config, signing_key=None, parameter_file=None),
                                   warm_up=False)
             k, dt = self.k, self.period_s
             e = self.vehicle.environment
@@ -599,6 +608,7 @@ class OnboardLoop:
         counts only from the autopilot on the main link (onboard.signing.CommandGate).
         What does not decode (NaN, inf, a field out of range) is counted and dropped."""
         name = m.get_type()
+        self._rx_link = link
         verdict = self.gate.admit(m, link)  # signing, sources, envelope, arm/mode params: counted there
         for reply in verdict.replies:  # COMMAND_ACK DENIED / STATUSTEXT "setpoint refused: ..."
             (self.ground or self.link).send(reply)
@@ -624,6 +634,7 @@ class OnboardLoop:
                 if mon is not None:
                     mon.sample_age(self.clock.now(), s.time_s)
                 self._observe(s.time_s)
+                self._depth_seen = True
                 self._enqueue(s.time_s, "depth", depth_from_pressure(s.press_abs_pa, self.vehicle))
             elif name == "ATTITUDE":
                 s = codec.decode_attitude(m)
@@ -648,6 +659,8 @@ class OnboardLoop:
                 self.mode = MODES["manual"]
             elif name == "COMMAND_LONG":
                 self._on_command(m)
+            elif name in self._service_messages:
+                self.services.handle(m, link)
             elif mon is None:
                 pass
             elif name in codec.ESC_GROUPS:  # propeller speeds: the jets' health
@@ -764,11 +777,12 @@ class OnboardLoop:
         elif cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             result = self.rates.handle(m)
         else:
-            result = mavlink.MAV_RESULT_UNSUPPORTED
+            result = self.services.command(m)  # requests for messages, capabilities; else UNSUPPORTED
         ack = mavlink.MAVLink_command_ack_message(cmd, result, 0, 0, m.get_srcSystem(), m.get_srcComponent())
         self.link.send(ack)
         if self.ground is not None:
             self.ground.send(ack)
+        self.services.after_ack(self.ground if self._rx_link == "ground" and self.ground is not None else self.link)
 
     def _yaw_estimate(self) -> float:
         return float(self.estimator.estimate.euler_rad[2])
@@ -988,9 +1002,8 @@ class OnboardLoop:
         if companion:
             return mavlink.MAVLink_heartbeat_message(
                 mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, base, self.mode, status, 3)
-        return mavlink.MAVLink_heartbeat_message(
-            mavlink.MAV_TYPE_SUBMARINE, mavlink.MAV_AUTOPILOT_GENERIC, base, self.mode, status, 3
-        )
+        kind, autopilot, flags = self.services.heartbeat_fields(self.mode)  # companion of a flight stack: 191
+        return mavlink.MAVLink_heartbeat_message(kind, autopilot, base | flags, self.mode, status, 3)
 
     def _telemetry(self, t: float, est, step_s: float) -> None:
         out = self.ground if self.ground is not None else self.link
@@ -1000,9 +1013,11 @@ class OnboardLoop:
             if out is not self.link:
                 self.link.send(self._heartbeat(companion=True))
             out.send(self._sys_status(step_s))
+            self.services.one_hz(out, max(t, 0.0))
             ms = codec.time_boot_ms(max(t, 0.0))
             for name, value in est.health.as_dict().items():  # gating / NaN rejections per stream
                 out.send(mavlink.MAVLink_named_value_float_message(ms, name[:10].encode(), float(value)))
+        self.services.streams(out, max(t, 0.0))  # LOCAL_POSITION_NED when a ground station asks for it
         send = {n: self.rates.due(n, t) for n in TELEMETRY_STREAMS}  # rates: SET_MESSAGE_INTERVAL
         if not any(send.values()):
             return
@@ -1071,7 +1086,15 @@ class OnboardLoop:
         present = (S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL
                    | S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE | S.MAV_SYS_STATUS_AHRS
                    | S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
-        health = present
+        # health: a sensor not heard from yet is not healthy; the geofence bit (no fence, so never
+        # breached) is set, as ArduPilot does, else MAVProxy reads its absence as a fence breach
+        health = present | S.MAV_SYS_STATUS_GEOFENCE
+        if self.fs_state.last_imu_s is None:
+            health &= ~(S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL)
+        if not self._depth_seen:
+            health &= ~S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+        if not self._est_started:
+            health &= ~S.MAV_SYS_STATUS_AHRS
         if self.failsafe_active:
             health &= ~(S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL)
         if self.estimator.diverged:

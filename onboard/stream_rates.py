@@ -35,6 +35,14 @@ class StreamRates:
         self._next.pop(name, None)
         return mavlink.MAV_RESULT_ACCEPTED
 
+    def set_hz(self, name: str, hz: float, default: bool = False) -> None:
+        """Set a stream's rate directly (REQUEST_DATA_STREAM, a MAVLink parameter); `default`: also
+        the rate an interval of 0 returns to."""
+        self.rate_hz[name] = float(hz)
+        if default:
+            self.default_hz[name] = float(hz)
+        self._next.pop(name, None)
+
     def due(self, name: str, t_s: float) -> bool:
         hz = self.rate_hz.get(name, self.default_hz.get(name, 0.0))
         if hz <= 0:
