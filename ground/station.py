@@ -9,7 +9,7 @@ What is read (onboard/loop.py's telemetry, plus an ArduSub vehicle's standard me
 - HEARTBEAT: vehicle type, armed flag (MAV_MODE_FLAG_SAFETY_ARMED), custom mode, system status.
 - ATTITUDE: roll, pitch, yaw and rates.
 - NAMED_VALUE_FLOAT: depth, depth_sp, yaw_sp, u_sp, u_est, alloc_err, alloc_fb, qp_us, step_ms,
-  step_p99, failsafe, armed, est_rej, in_rej, link_bad (the onboard loop's names).
+  step_p99, failsafe, armed, est_rej, in_rej, link_bad, faults (the onboard loop's names).
 - DEBUG_FLOAT_ARRAY "wrench": demanded wrench (6) then achieved wrench (6); the allocation
   residual is their difference.
 - SERVO_OUTPUT_RAW: per-jet speed, azimuth and elevation through the vehicle's [pwm] maps
@@ -134,10 +134,11 @@ class Snapshot:
     delay_jitter_s: float
     warnings: tuple
     events: tuple  # the last few (time_s, text)
+    faults: int | None = None  # onboard.monitor.Fault bitmask (NAMED_VALUE_FLOAT "faults"); None: not sent
 
 
 _NAMED = {"depth", "depth_sp", "yaw_sp", "u_sp", "u_est", "alloc_err", "alloc_fb", "qp_us", "step_ms",
-          "step_p99", "failsafe", "armed", "est_rej", "in_rej", "link_bad"}
+          "step_p99", "failsafe", "armed", "est_rej", "in_rej", "link_bad", "faults"}
 
 
 class Station:
@@ -401,4 +402,5 @@ class Station:
             garbage_bytes=self.garbage_bytes, bad_packets=self.bad_packets, rate_hz=self.rate_hz(now_s),
             rtt_s=self.rtt_s, delay_jitter_s=self.delay_jitter_s, warnings=warnings,
             events=tuple(list(self.events)[-n_events:]),
+            faults=int(v["faults"]) if math.isfinite(v.get("faults", nan)) else None,  # a NaN mask: not known
         )
