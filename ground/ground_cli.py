@@ -160,6 +160,10 @@ def configure(parser) -> None:
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     parser.add_argument("--once", action="store_true", help="listen 1 s, print one text frame, exit")
     parser.add_argument("--plain", action="store_true", help="plain-text frames instead of the rich view")
+    parser.add_argument("--web", action="store_true",
+                        help="serve the live dashboard (Bokeh plots and command buttons) on http://127.0.0.1:PORT/ "
+                             "instead of the terminal view")
+    parser.add_argument("--port", default=None, metavar="PORT", help="the dashboard's TCP port (default 8080; with --web)")
 
 
 def run(args) -> int:
@@ -178,13 +182,28 @@ def run(args) -> int:
             raise CommandError(f"--duration {args.duration}: expected a number of seconds > 0")
         if not args.max_mb > 0:
             raise CommandError(f"--max-mb {args.max_mb}: expected a size in MB > 0")
+        port = _web_port(args)
         session = GroundSession(args.link, vehicle, args.record, key, rates, commands,
                                 max_bytes=int(args.max_mb * 1024 * 1024))
     except (CommandError, SigningError, LinkError, RecorderError, VehicleFileError, OSError) as exc:
         print(f"jetloop ground: {exc}", file=sys.stderr)
         return 2
     try:
-        run_view(session, args.duration, args.once, args.plain)
+        if args.web:
+            from ground.view import render_text
+            from ground.web import WebError, serve
+
+            try:
+                serve(session, port, args.duration)
+            except WebError as exc:
+                print(f"jetloop ground: {exc}", file=sys.stderr)
+                return 2
+            except KeyboardInterrupt:
+                print(render_text(session.snapshot()), flush=True)  # the last frame, as the terminal view
+                raise
+            print(render_text(session.snapshot()), flush=True)
+        else:
+            run_view(session, args.duration, args.once, args.plain)
     finally:
         session.close()
         if session.recorder is not None:
@@ -192,6 +211,25 @@ def run(args) -> int:
             print(f"recorded {r.packets} packets ({r.packets_in} in, {r.packets_out} out) to "
                   f"{', '.join(str(p) for p in r.files)}", file=sys.stderr)
     return 0
+
+
+def _web_port(args) -> int | None:
+    """--web's port (8080 by default), checked before anything opens; CommandError otherwise."""
+    from ground.commands import CommandError
+
+    web, port = getattr(args, "web", False), getattr(args, "port", None)
+    if not web:
+        if port is not None:
+            raise CommandError("--port is the dashboard's: add --web")
+        return None
+    if args.once or args.plain:
+        raise CommandError("--web serves the dashboard; --once and --plain are the terminal view's")
+    from ground.web import DEFAULT_PORT, WebError, parse_port
+
+    try:
+        return DEFAULT_PORT if port is None else parse_port(port)
+    except WebError as exc:
+        raise CommandError(str(exc)) from None
 
 
 def configure_plot(parser) -> None:
