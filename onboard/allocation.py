@@ -100,7 +100,14 @@ class AllocationConfig:
 
     @classmethod
     def from_vehicle(cls, v: Vehicle, **overrides) -> "AllocationConfig":
-        """Scales from the vehicle: one jet's bollard thrust and the mean jet lever arm."""
+        """Scales from the vehicle: one jet's bollard thrust and the mean jet lever arm (for a
+        vehicle of fixed thrusters: one thruster's forward thrust and their mean lever arm)."""
+        if v.fixed and not v.units:
+            geo = FixedGeometry(v)
+            kw = {"force_scale_n": float(geo.t_max.mean()),
+                  "moment_arm_m": float(np.mean(np.linalg.norm(geo.position, axis=1))) or 0.1}
+            kw.update(overrides)
+            return cls(**kw)
         geo = JetGeometry(v)
         scale = float(geo.thrust_max(np.zeros(v.n_units)).mean())
         arm = float(np.mean(np.linalg.norm(geo.position, axis=1)))
@@ -857,6 +864,143 @@ class QpAllocator(_Base):
         return np.linalg.solve(self._H[True], self._BtW @ tau + self._wc * f_prev).reshape(self.k, 3)
 
 
+# ------------------------------------------------------------------------------------------------
+# Fixed thrusters: the QP's simplest case (spec 3.1)
+
+
+class FixedGeometry:
+    """The fixed two-way thrusters of a vehicle: the constant 6 x m effectiveness E (column i =
+    [d_i, r_i x d_i]) and each unit's thrust range [T_min, T_max] from the one thrust curve."""
+
+    def __init__(self, v: Vehicle):
+        from .fixed import thrust_limits
+
+        self.vehicle = v
+        self.m = len(v.fixed)
+        self.position = np.array([f.position for f in v.fixed], float).reshape(self.m, 3)
+        self.direction = np.array([f.direction for f in v.fixed], float).reshape(self.m, 3)
+        self.E = np.vstack([self.direction.T, np.cross(self.position, self.direction).T])
+        t_min, t_max = thrust_limits(v.fixed_thruster) if v.fixed else (0.0, 0.0)
+        self.t_min = np.full(self.m, t_min)
+        self.t_max = np.full(self.m, t_max)
+
+
+class FixedQpAllocator:
+    """Weighted-wrench QP over the thrusts t of fixed two-way thrusters; OSQP set up once.
+
+        min_t (E t - tau)' W (E t - tau) + w_e |t|^2 + w_c |t - t_prev|^2,  e_i T_min <= t_i <= e_i T_max
+
+    (weights as `QpAllocator`'s, normalised by force_scale^2). No joints: E is constant, so only
+    q and the bounds change from step to step; no joint window, no inflow (the curve is a bollard
+    table), no transient to compensate. A unit of efficiency e_i (`set_health`) gives e_i of its
+    thrust range; a dead one (0) none. The result is the same `Allocation` as the jets': its speed
+    slot (`n_rev_s`) holds each thruster's thrust command in newtons (the command vector's slot for
+    a fixed unit, spec 3.1), its joint angles are 0. `pwm_us` goes through the thrust curve's
+    inverse.
+    """
+
+    def __init__(self, v: Vehicle, dt_s: float, config: AllocationConfig | None = None):
+        if v.units:
+            raise ValueError(f"{v.name}: FixedQpAllocator allocates fixed thrusters only; this vehicle "
+                             f"has {v.n_jets} vectored jets too (a mixed vehicle is not supported yet)")
+        if not v.fixed:
+            raise ValueError(f"{v.name}: no [[fixed]] thrusters to allocate")
+        if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s: expected the control period in seconds (> 0), got {dt_s!r}")
+        self.vehicle = v
+        self.geo = FixedGeometry(v)
+        self.k = self.geo.m
+        self.dt_s = float(dt_s)
+        self.config = config if config is not None else AllocationConfig.from_vehicle(v)
+        self.W = self.config.weight_matrix()
+        c, E = self.config, self.geo.E
+        Fs2 = c.force_scale_n ** 2
+        EWE = E.T @ self.W @ E
+        self._H = {True: EWE + (c.effort_weight + c.change_weight) / Fs2 * np.eye(self.k),
+                   False: EWE + c.effort_weight / Fs2 * np.eye(self.k)}
+        self._EtW = E.T @ self.W
+        self._wc = c.change_weight / Fs2
+        P = {w: sp.triu(sp.csc_matrix(2.0 * self._H[w]), format="csc") for w in (False, True)}
+        self._Px = {w: P[w].data.copy() for w in P}
+        self._P_with_change = False
+        self._solver = osqp.OSQP()
+        self._solver.setup(P[False], np.zeros(self.k), sp.identity(self.k, format="csc"), self.geo.t_min.copy(),
+                           self.geo.t_max.copy(), verbose=False, warm_starting=True, polishing=False,
+                           eps_abs=c.eps_abs, eps_rel=c.eps_rel, max_iter=c.max_iter * 10)
+        self.setups = 1
+        self.previous = None
+        self.set_health()
+
+    def set_health(self, efficiency=None) -> None:
+        """efficiency: one value in [0, 1] per thruster (None: all 1); 0 = dead."""
+        eff = np.ones(self.k) if efficiency is None else _vector(efficiency, self.k, "efficiency (per thruster)")
+        if not np.all((eff >= 0.0) & (eff <= 1.0)):
+            raise ValueError(f"efficiency: expected {self.k} values in [0, 1] (1 healthy, 0 dead), got {efficiency!r}")
+        self.efficiency = eff
+
+    def unconstrained(self, wrench, t_prev=None) -> np.ndarray:
+        """The QP's minimiser without bounds: (E'WE + (w_e + w_c) I)^-1 (E'W tau + w_c t_prev)."""
+        tau = np.asarray(wrench, float)
+        if t_prev is None:
+            return np.linalg.solve(self._H[False], self._EtW @ tau)
+        return np.linalg.solve(self._H[True], self._EtW @ tau + self._wc * np.asarray(t_prev, float))
+
+    def allocate(self, wrench, alpha=None, beta=None, nu_r=None, commit: bool = True) -> Allocation:
+        """Thrusts for the demand [X, Y, Z, K, M, N] (alpha, beta, nu_r accepted and unused: no
+        joints, no inflow model)."""
+        t0 = time.perf_counter()
+        tau = _vector(wrench, 6, "wrench demand [X, Y, Z, K, M, N]")
+        lo, hi = self.efficiency * self.geo.t_min, self.efficiency * self.geo.t_max
+        prev = self.previous
+        if not np.all(np.isfinite(tau)):
+            T = np.zeros(self.k) if prev is None else np.clip(prev.thrust_n, lo, hi)
+            return self._finish(tau, T, "fallback: non-finite demand", t0, 0, True, 0.0, commit)
+        with_change = prev is not None
+        q = -2.0 * (self._EtW @ tau + (self._wc * prev.thrust_n if with_change else 0.0))
+        if with_change != self._P_with_change:
+            self._solver.update(Px=self._Px[with_change])
+            self._P_with_change = with_change
+        self._solver.update(q=q, l=lo, u=hi)
+        res = self._solver.solve()
+        ok = res.info.status_val in _SOLVED and res.x is not None and np.all(np.isfinite(res.x))
+        if not ok:
+            T = np.zeros(self.k) if prev is None else np.clip(prev.thrust_n, lo, hi)
+            return self._finish(tau, T, f"fallback: {res.info.status}", t0, res.info.iter, True,
+                                res.info.run_time, commit)
+        T = np.clip(np.asarray(res.x, float), lo, hi)
+        return self._finish(tau, T, str(res.info.status), t0, res.info.iter, False, res.info.run_time, commit)
+
+    def _finish(self, tau, T, status, t0, iters, fallback, qp_time, commit) -> Allocation:
+        achieved = self.geo.E @ T
+        res = achieved - tau
+        err = float(np.sqrt(res @ self.W @ res)) if np.all(np.isfinite(res)) else math.nan
+        z = np.zeros(self.k)
+        out = Allocation(
+            n_rev_s=_frozen(T), alpha_rad=_frozen(z), beta_rad=_frozen(z), thrust_n=_frozen(T),
+            force_body_n=_frozen(T[:, None] * self.geo.direction), wrench_demand=_frozen(tau),
+            wrench_achieved=_frozen(achieved), residual_wrench=_frozen(res), weighted_error=err, status=status,
+            solve_time_s=time.perf_counter() - t0, qp_time_s=float(qp_time), iterations=int(iters),
+            fallback=bool(fallback), thrust_max_n=_frozen(self.efficiency * self.geo.t_max),
+        )
+        if commit:
+            self.previous = out
+        return out
+
+    def commit(self, allocation: Allocation) -> None:
+        self.previous = allocation
+
+    def reset(self) -> None:
+        self.previous = None
+
+
+def allocator_for(v: Vehicle, dt_s: float, config: AllocationConfig | None = None):
+    """The QP allocator that fits the vehicle's actuators: `QpAllocator` for vectored jets,
+    `FixedQpAllocator` for fixed thrusters."""
+    if v.fixed:
+        return FixedQpAllocator(v, dt_s, config)
+    return QpAllocator(v, dt_s, config)
+
+
 __all__ = [
     "AXES",
     "AllocationConfig",
@@ -864,6 +1008,9 @@ __all__ = [
     "JetGeometry",
     "QpAllocator",
     "PseudoInverseAllocator",
+    "FixedGeometry",
+    "FixedQpAllocator",
+    "allocator_for",
 ]
 
 

@@ -408,6 +408,12 @@ class TransientCompensator:
         self.vehicle = v
         self.dt_s = float(dt_s)
         self.k = v.n_units
+        # No joint moves on a vehicle of fixed thrusters (spec 3.1): nothing to predict or cancel.
+        self.jointless = bool(v.fixed)
+        if self.jointless:
+            self.active, self.gain = False, 0.0
+            self.reset(alpha_rad, beta_rad)
+            return
         self.geo = JetGeometry(v)
         at = v.effects.azimuth_transient
         self.active = bool(at.enabled and v.effects.on("servo_lag"))
@@ -439,6 +445,8 @@ class TransientCompensator:
     # -- prediction -------------------------------------------------------------------------------
     def predict(self, alpha_cmd, beta_cmd, thrust_n) -> TransientPrediction:
         """Transient of the next step if the joints are commanded to alpha_cmd, beta_cmd."""
+        if self.jointless:
+            return self._predict(None, None, thrust_n, None, None, None, None)
         tau_s, rate, lim = self.servo
         a1, ra = servo_motion(self.alpha, alpha_cmd, self.dt_s, tau_s, rate, lim)
         b1, rb = servo_motion(self.beta, beta_cmd, self.dt_s, tau_s, rate, lim)
@@ -453,6 +461,12 @@ class TransientCompensator:
 
     def _predict(self, ra, rb, thrust_n, a0, b0, a1, b1) -> TransientPrediction:
         k = self.k
+        if self.jointless:
+            z = np.zeros(k)
+            return TransientPrediction(
+                wrench_n=np.zeros(6), force_body_n=np.zeros((k, 3)), moment_z_nm=z, rows=np.zeros((k, len(ROWS))),
+                alpha_rate_rad_s=z, beta_rate_rad_s=z, next_state=np.zeros((k, len(ROWS), 4)),
+                next_alpha_rad=z, next_beta_rad=z)
         ra = np.array(ra, dtype=np.float64)  # writable copies: one compiled signature
         rb = np.array(rb, dtype=np.float64)
         if not self.active:
@@ -578,6 +592,10 @@ def allocate_compensated(allocator, compensator: TransientCompensator, wrench_de
         raise ValueError(f"iterations: expected an integer >= 0 (re-plans per step), got {iterations!r}")
     n_iter = max(int(iterations), 0)
     tau = np.asarray(wrench_demand, float)
+    if compensator.jointless:  # fixed thrusters: compensation is off, the plan is what is sent
+        alloc = allocator.allocate(tau, nu_r=nu_r, commit=commit)
+        pred = compensator.predict(alloc.alpha_rad, alloc.beta_rad, alloc.thrust_n)
+        return CompensatedAllocation(alloc, pred, tau, np.asarray(alloc.wrench_achieved), 0, np.zeros(6))
     prev = getattr(allocator, "previous", None)
     thrust_ref = np.zeros(compensator.k) if prev is None else np.asarray(prev.thrust_n, float)
     corr = _correction(compensator, compensator.free_rows(), thrust_ref, compensator.alpha, compensator.beta)
