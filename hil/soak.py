@@ -793,7 +793,7 @@ def summarise(schedule: Schedule, monitor: Monitor, result, fly_s: float, warmup
     by_type = lambda a, b: {k: a[k] - b.get(k, 0) for k in sorted(a | b) if a[k] != b.get(k, 0)}  # noqa: E731
     # the telemetry recorder's recording against what the onboard loop sent it
     tel_rec = scan_tlog(result.telemetry_tlog)
-    tel = tel_rec.get((1, 191), none)
+    tel = tel_rec.get((1, 1), tel_rec.get((1, 191), none))  # the loop is component 1 to the ground (issue 16)
     tel_sent = int(ob["ground_link"]["packets_out"])
     tel_recorded = int(sum(tel["counts"].values()))
     n_sent, n_sent_rec = int(sum(sent.values())), int(sum(recorded_sent.values()))

@@ -19,9 +19,10 @@ each such message here; onboard.loop keeps only the flying):
   (onboard.signing.COMMAND_MESSAGES): with signing on, unsigned ones are refused by the gate.
 - **Commands**: every COMMAND_LONG and COMMAND_INT gets a COMMAND_ACK (the loop's `_on_command`;
   COMMAND_INT is read as the same command). Here: MAV_CMD_REQUEST_MESSAGE (AUTOPILOT_VERSION,
-  PROTOCOL_VERSION, HEARTBEAT, SYS_STATUS, SYSTEM_TIME, ATTITUDE, LOCAL_POSITION_NED, MESSAGE_INTERVAL
-  ... the ones the robot can fill truthfully; any other DENIED), REQUEST_AUTOPILOT_CAPABILITIES,
-  REQUEST_PROTOCOL_VERSION, GET_MESSAGE_INTERVAL. The message goes out after its ACK.
+  HEARTBEAT, SYS_STATUS, SYSTEM_TIME, ATTITUDE, LOCAL_POSITION_NED, MESSAGE_INTERVAL: the ones the
+  robot can fill truthfully; any other DENIED), REQUEST_AUTOPILOT_CAPABILITIES, GET_MESSAGE_INTERVAL.
+  The message goes out after its ACK. REQUEST_PROTOCOL_VERSION is UNSUPPORTED: the dialect the robot
+  carries (pymavlink's ardupilotmega) has no PROTOCOL_VERSION message.
 - **Modes**: SET_MODE (legacy message) is read as MAV_CMD_DO_SET_MODE; HEARTBEAT.base_mode carries
   the standard flags of each mode (stabilize, guided, manual input) beside the custom number.
 - **Time**: SYSTEM_TIME at 1 Hz to the ground; TIMESYNC requests answered (tc1 = our monotonic ns);
@@ -264,12 +265,13 @@ class Microservices:
             why = self._try_apply(name, float(m.param_value))
         if why is None:
             self.params.set(name, float(m.param_value))
-        else:  # refused: the old value echoed, and why
-            self.loop.stats.security.commands_denied += 1
-            for reply in self.loop.gate.refusal_text(f"param refused: {why}"):
-                out.send(reply)
+        else:
             self.params.values[name] = old
-        out.send(self._param_value(self.params.index(name)))
+        out.send(self._param_value(self.params.index(name)))  # the new value, or the old one echoed
+        if why is not None:  # and why
+            self.loop.stats.security.commands_denied += 1
+            for reply in self.loop.gate.refusal_text(why):  # STATUSTEXT holds 50 characters
+                out.send(reply)
 
     def _try_apply(self, name: str, value: float) -> str | None:
         """Apply one new value to the running loop; why not (then nothing changed), else None."""
@@ -336,9 +338,6 @@ class Microservices:
         if cmd == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._after_ack.append(self.autopilot_version())
             return mavlink.MAV_RESULT_ACCEPTED
-        if cmd == mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION:
-            self._after_ack.append(self.protocol_version())
-            return mavlink.MAV_RESULT_ACCEPTED
         if cmd == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
             msg = self.message(mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL, m)
             if msg is None:
@@ -362,8 +361,6 @@ class Microservices:
         est = loop.estimator.estimate
         if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return self.autopilot_version()
-        if msg_id == mavlink.MAVLINK_MSG_ID_PROTOCOL_VERSION:
-            return self.protocol_version()
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return loop._heartbeat()
         if msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
@@ -392,10 +389,6 @@ class Microservices:
         sw = (major << 24) | (minor << 16) | (patch << 8) | mavlink.FIRMWARE_VERSION_TYPE_DEV
         return mavlink.MAVLink_autopilot_version_message(CAPABILITIES, sw, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8,
                                                          0, 0, self.uid, [0] * 18)
-
-    @staticmethod
-    def protocol_version():
-        return mavlink.MAVLink_protocol_version_message(200, 100, 200, [0] * 8, [0] * 8)
 
     @staticmethod
     def system_time(t: float):

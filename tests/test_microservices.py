@@ -1,0 +1,288 @@
+"""The robot's ground-facing MAVLink microservices over real loopback UDP (onboard.microservices,
+onboard.params): a pymavlink ground station (system 255) talks to a real-time onboard loop running
+in a thread, as QGroundControl, MAVProxy and MAVSDK do (their own runs: test_gcs_clients.py)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import replace
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from onboard import params as P
+from onboard.link import Link
+from onboard.loop import LoopConfig, OnboardLoop, WallClock
+from onboard.signing import enable_signing
+from onboard.vehicle import load_vehicle
+
+KEY = bytes(range(32))
+
+
+class Station:
+    """A ground station on a udpin link, with the robot's loop running in a thread."""
+
+    def __init__(self, config=LoopConfig(), main=None):
+        self.gcs = Link("udpin:127.0.0.1:0", source_system=255, source_component=190)
+        self.main = main or Link("udpin:127.0.0.1:0", 1, 191)  # nobody speaks there: no sensors
+        self.ground = Link(f"udpout:127.0.0.1:{self.gcs.local_address[1]}", 1, 191)
+        self.loop = OnboardLoop(load_vehicle(), self.main, WallClock(), config, ground=self.ground)
+        self.stop_event = threading.Event()
+        self.thread = threading.Thread(target=self.loop.run, kwargs=dict(stop=self.stop_event.is_set), daemon=True)
+        self.thread.start()
+        self.wait("HEARTBEAT")  # the ground link's first datagram makes the loop our peer
+
+    def send(self, msg) -> None:
+        self.gcs.send(msg)
+
+    def wait(self, name: str, cond=lambda m: True, timeout_s: float = 3.0):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            m = self.gcs.recv(0.05)
+            if m is not None and m.get_type() == name and cond(m):
+                return m
+        raise AssertionError(f"no {name} within {timeout_s} s")
+
+    def collect(self, name: str, seconds: float) -> list:
+        out, deadline = [], time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            m = self.gcs.recv(0.05)
+            if m is not None and m.get_type() == name:
+                out.append(m)
+        return out
+
+    def ack(self, command: int, timeout_s: float = 3.0):
+        return self.wait("COMMAND_ACK", lambda m: m.command == command, timeout_s)
+
+    def close(self) -> None:
+        self.stop_event.set()
+        self.thread.join(5)
+        for lk in (self.gcs, self.main, self.ground):
+            lk.close()
+
+
+@pytest.fixture
+def station(tmp_path):
+    s = Station(LoopConfig(parameter_file=str(tmp_path / "asr4.params")))
+    yield s
+    s.close()
+
+
+def _name(m) -> str:
+    return m.param_id if isinstance(m.param_id, str) else m.param_id.decode()
+
+
+# -- identity --------------------------------------------------------------------------------------
+
+def test_the_controller_is_component_1_a_submarine_that_qgroundcontrol_would_add(station):
+    hb = station.wait("HEARTBEAT")
+    assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, 1)
+    assert hb.type == mavlink.MAV_TYPE_SUBMARINE and hb.autopilot == mavlink.MAV_AUTOPILOT_GENERIC
+    assert hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED and hb.custom_mode == 4  # guided
+    assert hb.base_mode & mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+
+
+def test_beside_an_ardupilot_heartbeat_the_loop_becomes_its_companion_191():
+    main = Link("udpin:127.0.0.1:0", 1, 191)
+    autopilot = Link(f"udpout:127.0.0.1:{main.local_address[1]}", 1, 1)
+    s = Station(main=main)
+    try:
+        assert s.wait("HEARTBEAT").get_srcComponent() == 1
+        autopilot.send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_SUBMARINE, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                         0, 19, mavlink.MAV_STATE_STANDBY, 3))
+        text = s.wait("STATUSTEXT")
+        assert "companion of autopilot 1:1" in (text.text if isinstance(text.text, str) else text.text.decode())
+        hb = s.wait("HEARTBEAT", lambda m: m.get_srcComponent() == 191, timeout_s=3.0)
+        assert hb.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and hb.autopilot == mavlink.MAV_AUTOPILOT_INVALID
+        # parameters addressed to the autopilot's component 1 are the autopilot's to answer
+        s.send(mavlink.MAVLink_param_request_list_message(1, 1))
+        assert not s.collect("PARAM_VALUE", 1.0)
+    finally:
+        s.close()
+        autopilot.close()
+
+
+# -- parameters ------------------------------------------------------------------------------------
+
+def test_param_request_list_gives_every_parameter_once_with_index_and_count(station):
+    station.send(mavlink.MAVLink_param_request_list_message(1, 0))
+    got = station.collect("PARAM_VALUE", 1.5)
+    assert len(got) == len(P.PARAMS)
+    assert sorted(m.param_index for m in got) == list(range(len(P.PARAMS)))
+    assert {m.param_count for m in got} == {len(P.PARAMS)}
+    assert all(m.param_type == mavlink.MAV_PARAM_TYPE_REAL32 and len(_name(m)) <= 16 for m in got)
+    by = {_name(m): m.param_value for m in got}
+    assert by["CTL_DEPTH_BW"] == pytest.approx(1.2) and by["FS_IMU_TIMEOUT"] == pytest.approx(0.3)
+    assert by["ALLOC_W_HEAVE"] == pytest.approx(10.0) and by["SR_ATTITUDE"] == pytest.approx(10.0)
+
+
+def test_param_read_by_name_and_by_index(station):
+    station.send(mavlink.MAVLink_param_request_read_message(1, 1, b"CTL_YAW_BW", -1))
+    m = station.wait("PARAM_VALUE")
+    assert _name(m) == "CTL_YAW_BW" and m.param_index == P.Parameters(
+        {p.name: 0.0 for p in P.PARAMS}).index("CTL_YAW_BW")
+    station.send(mavlink.MAVLink_param_request_read_message(1, 1, b"", 0))
+    assert _name(station.wait("PARAM_VALUE")) == P.PARAMS[0].name
+
+
+def test_param_set_takes_effect_live_persists_and_the_next_start_uses_it(station, tmp_path):
+    loop = station.loop
+    station.send(mavlink.MAVLink_param_set_message(1, 1, b"CTL_DEPTH_BW", 2.0, mavlink.MAV_PARAM_TYPE_REAL32))
+    m = station.wait("PARAM_VALUE", lambda m: _name(m) == "CTL_DEPTH_BW")
+    assert m.param_value == pytest.approx(2.0)
+    assert loop.controller.gains.depth_bandwidth_rad_s == pytest.approx(2.0)  # the controller flies it now
+    station.send(mavlink.MAVLink_param_set_message(1, 1, b"ALLOC_W_YAW", 3.0, mavlink.MAV_PARAM_TYPE_REAL32))
+    station.wait("PARAM_VALUE", lambda m: _name(m) == "ALLOC_W_YAW")
+    assert loop.allocator.config.axis_weights[5] == 3.0
+    station.send(mavlink.MAVLink_param_set_message(1, 1, b"SR_ATTITUDE", 2.0, mavlink.MAV_PARAM_TYPE_REAL32))
+    station.wait("PARAM_VALUE", lambda m: _name(m) == "SR_ATTITUDE")
+    att = station.collect("ATTITUDE", 2.0)
+    assert 2 <= len(att) <= 6, len(att)  # 2 Hz, not the default 10 Hz
+    text = (tmp_path / "asr4.params").read_text()
+    assert "CTL_DEPTH_BW 2\n" in text and "ALLOC_W_YAW 3\n" in text and "CTL_ATT_BW" not in text  # only the changed
+    again = OnboardLoop(load_vehicle(), Link("udpin:127.0.0.1:0"), WallClock(),
+                        LoopConfig(parameter_file=str(tmp_path / "asr4.params")), warm_up=False)
+    assert again.controller.gains.depth_bandwidth_rad_s == pytest.approx(2.0)
+    assert again.allocator.config.axis_weights[5] == 3.0
+    again.link.close()
+
+
+def test_out_of_range_set_is_refused_with_the_old_value_echoed_and_a_reason(station, tmp_path):
+    station.send(mavlink.MAVLink_param_set_message(1, 1, b"CTL_DEPTH_BW", 50.0, mavlink.MAV_PARAM_TYPE_REAL32))
+    m = station.wait("PARAM_VALUE", lambda m: _name(m) == "CTL_DEPTH_BW")
+    assert m.param_value == pytest.approx(1.2)
+    text = station.wait("STATUSTEXT")
+    assert "CTL_DEPTH_BW 50 rad/s: expected 0.1-6 rad/s" in (text.text if isinstance(text.text, str) else text.text.decode())
+    assert station.loop.controller.gains.depth_bandwidth_rad_s == pytest.approx(1.2)
+    assert not (tmp_path / "asr4.params").exists()
+
+
+def test_all_allocation_weights_zero_is_refused_by_the_allocator_not_applied(station):
+    for axis in P.AXES[:-1]:
+        station.send(mavlink.MAVLink_param_set_message(1, 1, f"ALLOC_W_{axis}".encode(), 0.0, 9))
+        station.wait("PARAM_VALUE", lambda m, a=axis: _name(m) == f"ALLOC_W_{a}")
+    station.send(mavlink.MAVLink_param_set_message(1, 1, b"ALLOC_W_YAW", 0.0, 9))
+    m = station.wait("PARAM_VALUE", lambda m: _name(m) == "ALLOC_W_YAW")
+    assert m.param_value == 1.0 and station.loop.allocator.config.axis_weights[5] == 1.0
+
+
+def test_unsigned_param_set_is_refused_when_signing_is_on(tmp_path):
+    s = Station(LoopConfig(signing_key=KEY, parameter_file=str(tmp_path / "p.params")))
+    try:
+        s.send(mavlink.MAVLink_param_set_message(1, 1, b"CTL_DEPTH_BW", 2.0, 9))
+        assert not s.collect("PARAM_VALUE", 1.0)
+        assert s.loop.controller.gains.depth_bandwidth_rad_s == pytest.approx(1.2)
+        assert s.loop.stats.security.unsigned >= 1
+        enable_signing(s.gcs.mav, KEY)
+        s.send(mavlink.MAVLink_param_set_message(1, 1, b"CTL_DEPTH_BW", 2.0, 9))
+        assert s.wait("PARAM_VALUE").param_value == pytest.approx(2.0)
+    finally:
+        s.close()
+
+
+def test_a_bad_parameter_file_is_one_line_naming_file_line_and_range(tmp_path):
+    f = tmp_path / "v.params"
+    f.write_text("# ok\nCTL_DEPTH_BW 1.5\nCTL_DEPHT_BW 1.0\n")
+    with pytest.raises(P.ParameterFileError, match=r"v.params:3: unknown parameter 'CTL_DEPHT_BW'"):
+        P.load(f)
+    f.write_text("FS_IMU_TIMEOUT nan\n")
+    with pytest.raises(P.ParameterFileError, match=r"v.params:1: FS_IMU_TIMEOUT: expected a finite number"):
+        P.load(f)
+
+
+def test_every_parameter_default_lies_in_its_range_and_names_fit_16_characters():
+    loop = OnboardLoop(load_vehicle(), Link("udpin:127.0.0.1:0"), WallClock(), warm_up=False)
+    try:
+        for spec in P.PARAMS:
+            v = loop.services.params.defaults[spec.name]
+            assert spec.lo <= v <= spec.hi, spec
+            assert len(spec.name) <= 16
+    finally:
+        loop.link.close()
+
+
+# -- commands, modes, time, mission ----------------------------------------------------------------
+
+def test_every_command_long_and_command_int_is_acked(station):
+    station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_NAV_TAKEOFF).result == mavlink.MAV_RESULT_UNSUPPORTED
+    station.send(mavlink.MAVLink_command_int_message(1, 1, 0, mavlink.MAV_CMD_DO_REPOSITION, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_DO_REPOSITION).result == mavlink.MAV_RESULT_UNSUPPORTED
+    # arming with no IMU: refused for now, said so
+    station.send(mavlink.MAVLink_command_int_message(1, 1, 0, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0,
+                                                     1, 0, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM).result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    station.send(mavlink.MAVLink_command_int_message(1, 1, 0, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0,
+                                                     0.5, 0, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM).result == mavlink.MAV_RESULT_DENIED
+
+
+def test_modes_by_do_set_mode_and_by_set_mode_show_in_the_heartbeat(station):
+    station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 2, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_DO_SET_MODE).result == mavlink.MAV_RESULT_ACCEPTED
+    hb = station.wait("HEARTBEAT", lambda m: m.custom_mode == 2, timeout_s=2.5)
+    assert hb.base_mode & mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+    station.send(mavlink.MAVLink_set_mode_message(1, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 19))
+    assert station.ack(mavlink.MAV_CMD_DO_SET_MODE).result == mavlink.MAV_RESULT_ACCEPTED
+    assert station.wait("HEARTBEAT", lambda m: m.custom_mode == 19, timeout_s=2.5)
+    station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 7, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_DO_SET_MODE).result == mavlink.MAV_RESULT_DENIED  # no such mode
+
+
+def test_request_message_autopilot_version_acks_then_sends_the_true_capabilities(station):
+    station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                      mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0))
+    seen = []
+    deadline = time.monotonic() + 3
+    while time.monotonic() < deadline and len(seen) < 2:
+        m = station.gcs.recv(0.05)
+        if m is not None and (m.get_type() == "AUTOPILOT_VERSION" or
+                              (m.get_type() == "COMMAND_ACK" and m.command == mavlink.MAV_CMD_REQUEST_MESSAGE)):
+            seen.append(m)
+    assert [m.get_type() for m in seen] == ["COMMAND_ACK", "AUTOPILOT_VERSION"]
+    assert seen[0].result == mavlink.MAV_RESULT_ACCEPTED
+    caps = seen[1].capabilities
+    assert caps & mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 and caps & mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    assert caps & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+    for absent in ("FTP", "MISSION_FENCE", "MISSION_RALLY", "TERRAIN", "SET_ATTITUDE_TARGET", "FLIGHT_TERMINATION"):
+        assert not caps & getattr(mavlink, f"MAV_PROTOCOL_CAPABILITY_{absent}"), absent
+    assert seen[1].flight_sw_version >> 16 == 0x0001  # 0.1.x
+    station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                      mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, 0, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_REQUEST_MESSAGE).result == mavlink.MAV_RESULT_DENIED  # no GNSS to report
+
+
+def test_timesync_ping_and_system_time(station):
+    station.send(mavlink.MAVLink_timesync_message(0, 123456789))
+    ts = station.wait("TIMESYNC")
+    assert ts.ts1 == 123456789 and ts.tc1 > 0
+    station.send(mavlink.MAVLink_ping_message(42, 7, 0, 0))
+    p = station.wait("PING")
+    assert (p.time_usec, p.seq, p.target_system, p.target_component) == (42, 7, 255, 190)
+    st = station.collect("SYSTEM_TIME", 2.2)
+    assert len(st) >= 2 and abs(st[-1].time_unix_usec / 1e6 - time.time()) < 5
+
+
+def test_mission_protocol_holds_an_empty_mission(station):
+    for mtype in (mavlink.MAV_MISSION_TYPE_MISSION, mavlink.MAV_MISSION_TYPE_FENCE, mavlink.MAV_MISSION_TYPE_RALLY):
+        station.send(mavlink.MAVLink_mission_request_list_message(1, 1, mtype))
+        c = station.wait("MISSION_COUNT", lambda m, t=mtype: m.mission_type == t)
+        assert c.count == 0 and (c.target_system, c.target_component) == (255, 190)
+    station.send(mavlink.MAVLink_mission_count_message(1, 1, 3, 0))
+    assert station.wait("MISSION_ACK").type == mavlink.MAV_MISSION_NO_SPACE
+    station.send(mavlink.MAVLink_mission_clear_all_message(1, 1, 0))
+    assert station.wait("MISSION_ACK").type == mavlink.MAV_MISSION_ACCEPTED
+    station.send(mavlink.MAVLink_mission_request_int_message(1, 1, 0, 0))
+    assert station.wait("MISSION_ACK").type == mavlink.MAV_MISSION_INVALID_SEQUENCE
+
+
+def test_sys_status_claims_only_what_the_robot_has_and_no_fence_breach(station):
+    s = station.wait("SYS_STATUS")
+    S = mavlink
+    has = (S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL | S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+           | S.MAV_SYS_STATUS_AHRS | S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
+    assert s.onboard_control_sensors_present == has and s.onboard_control_sensors_enabled == has
+    assert s.onboard_control_sensors_health & S.MAV_SYS_STATUS_GEOFENCE  # no fence, so never breached
+    assert not s.onboard_control_sensors_health & S.MAV_SYS_STATUS_SENSOR_3D_GYRO  # no IMU heard: not healthy
+    assert not s.onboard_control_sensors_health & S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
