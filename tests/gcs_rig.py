@@ -45,6 +45,11 @@ class Robot:
         self.loop.run(stop=self._stop.is_set)
 
     def start(self) -> "Robot":
+        # one time origin: the plant's vehicle time and the loop's wall clock start together (the
+        # loop's fault monitor judges IMU freshness by the samples' own stamps)
+        self.loop.clock = WallClock()
+        self.loop.start()  # its hello makes the plant start
+        self.endpoint.start()
         for t in self._threads:
             t.start()
         return self
