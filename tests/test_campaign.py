@@ -1,0 +1,330 @@
+"""jetloop campaign (issue 14): the same per-task results serially, on a local Dask cluster and on a
+real `dask scheduler` with two `dask worker` processes on loopback; resume after an interrupted
+run; a killed worker costs a retry; a task that raises is a row; a bad spec is one line."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ground.campaign import CampaignSpecError, load_spec, parse_spec, read_table, run_campaign
+from ground.campaign.cli import EXAMPLES
+from ground.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+# the figures a flight computes (not its timing): equal whichever way the task ran
+FIGURES = ("depth_rms_m", "yaw_rms_rad", "speed_rms_m_s", "depth_max_abs_m", "tilt_max_rad", "control_steps",
+           "allocation_weighted_error_mean", "allocation_fallbacks", "failsafe_entries", "faults_seen",
+           "limit_violations", "detections")
+
+SMALL = """
+kind = "missions"
+seed = 3
+[missions]
+mission = "hold"
+duration_s = 7.0
+draws = 2
+allocators = ["qp"]
+seeds = [0]
+[missions.perturb]
+"hydro.added_mass" = 0.1
+[missions.faults]
+none = {}
+"jet 2 dead" = { dead-jet = "2@4" }
+"""
+
+
+def write_spec(tmp_path: Path, text: str, name: str = "spec.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def by_id(rows):
+    return {r["task_id"]: r for r in rows}
+
+
+def assert_same_results(a_dir: Path, b_dir: Path) -> None:
+    a, b = by_id(read_table(a_dir)), by_id(read_table(b_dir))
+    assert a.keys() == b.keys()
+    for tid, ra in a.items():
+        rb = b[tid]
+        assert ra["status"] == rb["status"] == "ok", (ra["error"], rb["error"])
+        for k in FIGURES:
+            assert ra[k] == rb[k], (ra["label"], k, ra[k], rb[k])
+        # the recording itself, byte for byte
+        assert (a_dir / "tasks" / tid / "mission.tlog").read_bytes() == (b_dir / "tasks" / tid / "mission.tlog").read_bytes()
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# ------------------------------------------------------------------------------------------------
+# The spec
+
+
+def test_a_spec_becomes_content_addressed_tasks(tmp_path):
+    c = load_spec(write_spec(tmp_path, SMALL))
+    assert c.kind == "missions" and len(c.tasks) == 4  # 2 draws x 1 allocator x 2 faults x 1 seed
+    again = parse_spec(SMALL, tmp_path / "elsewhere.toml")
+    assert [t.id for t in c.tasks] == [t.id for t in again.tasks]  # the address is the content, not the file
+    wider = parse_spec(SMALL.replace('seeds = [0]', 'seeds = [0, 1]'), tmp_path / "x.toml")
+    assert {t.id for t in c.tasks} < {t.id for t in wider.tasks}  # a wider sweep keeps the old tasks' ids
+    # the draws are hil.batch's: draw i of perturbed_values(vehicle, perturb, n, seed)
+    from hil.batch import perturbed_values
+    from onboard.vehicle import load_vehicle
+
+    drawn = perturbed_values(load_vehicle(), {"hydro.added_mass": 0.1}, 2, 3)["hydro.added_mass"]
+    got = [t.inputs["vehicle_values"]["hydro.added_mass"] for t in c.tasks if t.inputs["fault"] == "none"]
+    assert got == [list(drawn[0]), list(drawn[1])]
+
+
+def test_the_shipped_example_specs_parse(tmp_path):
+    names = sorted(p.name for p in EXAMPLES.glob("*.toml"))
+    assert names == ["diagnose.toml", "missions.toml", "prove.toml"]
+    m = load_spec(EXAMPLES / "missions.toml")
+    assert m.kind == "missions" and len(m.tasks) == 8 * 2 * 3 * 2
+    p = load_spec(EXAMPLES / "prove.toml")
+    assert p.kind == "prove" and len(p.tasks) + p.skipped == 300
+    d = tmp_path / "diagnose.toml"
+    shutil.copy(EXAMPLES / "diagnose.toml", d)
+    (tmp_path / "pool-week" / "monday").mkdir(parents=True)
+    (tmp_path / "pool-week" / "monday" / "a.tlog").write_bytes(b"x")
+    (tmp_path / "pool-week" / "b.tlog").write_bytes(b"y")
+    assert [t.label for t in load_spec(d).tasks] == ["pool-week/b.tlog", "pool-week/monday/a.tlog"]
+
+
+@pytest.mark.parametrize("text, says", [
+    ("kind = 'missions'\n[missions]\ndraws = -1\n", "missions.draws: expected a whole number 0..100000, got -1"),
+    ("kind = 'missile'\n", "kind: expected one of missions, prove, diagnose, got 'missile'"),
+    ("[missions]\n", "kind: missing; expected one of missions, prove, diagnose"),
+    ("kind = 'missions'\n[missions]\ndraw = 3\n", "missions.draw: unknown key; allowed here:"),
+    ("kind = 'missions'\n[missions]\nallocators = ['pinv']\n", "missions.allocators: expected a list of distinct values from qp, baseline"),
+    ("kind = 'missions'\n[missions.faults]\nbad = { weak-jet = '3:1.5@2' }\n", "missions.faults.bad: weak-jet '3:1.5@2': expected UNIT:EFFICIENCY@T0"),
+    ("kind = 'missions'\n[missions.faults]\nbad = { loss = '0.1' }\n", "missions.faults.bad.loss: expected no link fault with flight = \"inprocess\""),
+    ("kind = 'missions'\n[missions]\ndraws = 2\n[missions.perturb]\n'hydro.mass' = 0.1\n", "missions.perturb: perturb: hydro.mass: unknown vehicle key"),
+    ("kind = 'missions'\nvehicle = 'nowhere.toml'\n", "vehicle: expected the path of a readable vehicle TOML file"),
+    ("kind = 'prove'\n[prove]\nsplit = 'test'\n", "prove.split: expected one of dev, eval, got 'test'"),
+    ("kind = 'diagnose'\n[diagnose]\nrecordings = 'none/*.tlog'\n", "diagnose.recordings: expected a glob that matches at least one recording file"),
+    ("kind = 'missions'\n[missions\n", "not valid TOML"),
+])
+def test_a_bad_spec_is_one_line_naming_file_and_key(tmp_path, capsys, text, says):
+    spec = write_spec(tmp_path, text)
+    with pytest.raises(CampaignSpecError):
+        load_spec(spec)
+    rc = main(["campaign", str(spec), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"jetloop campaign: {spec}: ") and says in err, err
+    assert not (tmp_path / "out" / "results.parquet").exists()
+
+
+def test_bad_command_lines_are_one_line(tmp_path, capsys):
+    spec = write_spec(tmp_path, SMALL)
+    for argv, says in ((["--workers", "-1"], "--workers -1: expected"),
+                       (["--scheduler", "localhost:8786"], "expected tcp://HOST:PORT"),
+                       (["--scheduler", "tcp://127.0.0.1:8786", "--workers", "2"], "--workers with --scheduler")):
+        assert main(["campaign", str(spec), "--out", str(tmp_path / "o"), *argv]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and says in err, err
+    assert main(["campaign", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "missing.toml: cannot read campaign spec" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.slow  # the client waits its 20 s connect timeout
+def test_no_scheduler_there_is_one_line(tmp_path, capsys):
+    spec = write_spec(tmp_path, SMALL)
+    rc = main(["campaign", str(spec), "--out", str(tmp_path / "o"), "--scheduler", f"tcp://127.0.0.1:{free_tcp_port()}",
+               "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "cannot reach the scheduler" in err and "Traceback" not in err, err
+
+
+# ------------------------------------------------------------------------------------------------
+# Running
+
+
+@pytest.mark.slow
+def test_serial_and_local_cluster_agree_and_an_interrupted_run_resumes(tmp_path, capsys):
+    spec = write_spec(tmp_path, SMALL)
+    campaign = load_spec(spec)
+    # serial, interrupted (Ctrl-C) after its second task: what landed stays
+    landed = []
+
+    def interrupt(row):
+        landed.append(row["task_id"])
+        if len(landed) == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(campaign, tmp_path / "serial", workers=0, on_row=interrupt)
+    assert len(read_table(tmp_path / "serial")) == 2
+    # the same command again: only the two missing tasks run
+    assert main(["campaign", str(spec), "--out", str(tmp_path / "serial"), "--workers", "0"]) == 0
+    out = capsys.readouterr()
+    assert "ran 2 now (2 already done)" in out.out
+    assert "4/4 done, 0 failed" in out.err and "ETA" in out.err and "running" in out.err  # the progress lines
+    rows = read_table(tmp_path / "serial")
+    assert [r["task_id"] for r in rows] == [t.id for t in campaign.tasks]  # one row per task, the spec's order
+    assert {r["worker"] for r in rows} == {"serial"}
+    # a local cluster of two spawned worker processes: the same figures, the same recordings
+    assert main(["campaign", str(spec), "--out", str(tmp_path / "local"), "--workers", "2", "--quiet"]) == 0
+    assert "ran 4 now" in capsys.readouterr().out
+    assert_same_results(tmp_path / "serial", tmp_path / "local")
+    assert all(r["worker"].startswith("tcp://127.0.0.1:") for r in read_table(tmp_path / "local"))
+    # done is done: nothing runs again
+    assert main(["campaign", str(spec), "--out", str(tmp_path / "local"), "--workers", "2", "--quiet"]) == 0
+    assert "ran 0 now (4 already done)" in capsys.readouterr().out
+    # the report: tracking plots per allocator and fault, the failure cases with their recordings
+    page = (tmp_path / "local" / "index.html").read_text()
+    assert "plots/tracking.png" in page and (tmp_path / "local" / "plots" / "tracking.png").stat().st_size > 1000
+    assert "jet 2 dead" in page and "Failure cases" in page
+
+
+@pytest.fixture
+def dask_cluster(tmp_path):
+    """A real `dask scheduler` and two `dask worker` processes (one thread each) on 127.0.0.1,
+    each in its own process group (a worker's nanny and its worker process die together)."""
+    port = free_tcp_port()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    bindir = Path(sys.executable).parent
+    dask_cmd = [str(bindir / "dask")] if (bindir / "dask").exists() else [sys.executable, "-m", "distributed.cli.dask_scheduler"]
+    logs = tmp_path / "dask-logs"
+    logs.mkdir()
+    procs = []
+
+    def start(args, name):
+        f = open(logs / f"{name}.log", "w")
+        p = subprocess.Popen(args, stdout=f, stderr=subprocess.STDOUT, env=env, cwd=tmp_path, start_new_session=True)
+        procs.append(p)
+        return p
+
+    address = f"tcp://127.0.0.1:{port}"
+    if dask_cmd[0].endswith("dask"):
+        start(dask_cmd + ["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], "scheduler")
+        workers = [start(dask_cmd + ["worker", address, "--nthreads", "1", "--nworkers", "1", "--no-dashboard",
+                                     "--host", "127.0.0.1", "--local-directory", str(tmp_path / f"w{i}")], f"worker{i}")
+                   for i in range(2)]
+    else:  # pragma: no cover - the console script is installed with distributed
+        pytest.fail("the `dask` command (dask[distributed]) is not installed")
+    from distributed import Client
+
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                with Client(address, timeout="5s") as c:
+                    c.wait_for_workers(2, timeout=max(1.0, deadline - time.monotonic()))
+                    break
+            except (OSError, TimeoutError):
+                if time.monotonic() > deadline:
+                    pytest.fail("the dask scheduler and workers did not start: " +
+                                " | ".join(p.read_text()[-400:] for p in logs.iterdir()))
+                time.sleep(0.5)
+        yield address, workers
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(5)
+
+
+@pytest.mark.slow
+def test_a_real_scheduler_with_two_workers_survives_a_killed_worker(tmp_path, dask_cluster):
+    address, workers = dask_cluster
+    text = SMALL.replace("draws = 2", "draws = 3")  # 6 tasks
+    spec = write_spec(tmp_path, text)
+    campaign = load_spec(spec)
+    killed = {}
+
+    def kill_one(row):
+        # the worker that just delivered a task has taken its next one: kill it mid-task, nanny and all
+        if not killed:
+            pgid = os.getpgid(row["pid"])
+            assert pgid in {w.pid for w in workers}
+            os.killpg(pgid, signal.SIGKILL)
+            killed.update(worker=row["worker"], pgid=pgid, at=time.monotonic())
+
+    outcome = run_campaign(campaign, tmp_path / "cluster", scheduler=address, quiet=True, on_row=kill_one)
+    assert killed, "no task landed"
+    assert [w.wait(10) for w in workers if w.pid == killed["pgid"]] == [-signal.SIGKILL]
+    rows = read_table(tmp_path / "cluster")
+    assert outcome.counts == {"ok": 6, "error": 0, "lost": 0}
+    assert len(rows) == 6 and all(r["status"] == "ok" for r in rows)
+    survivors = {r["worker"] for r in rows} - {killed["worker"]}
+    assert len(survivors) == 1  # the tasks after the kill ran on the other worker
+    # the scheduler's own story: a task was processing on the killed worker and went back to the
+    # queue when it died (a retry), not to an error
+    from distributed import Client
+
+    with Client(address, timeout="10s") as c:
+        story = c.run_on_scheduler(lambda dask_scheduler: [tuple(map(str, e)) for e in dask_scheduler.transition_log])
+    retried = {e[0].rsplit("-", 1)[1] for e in story
+               if e[1] == "processing" and e[2] == "released" and e[4].startswith("handle-worker-cleanup")}
+    assert retried and retried <= {r["task_id"] for r in rows}  # taken back from the dead worker, then done
+    # the same per-task results as a serial run in this process
+    run_campaign(campaign, tmp_path / "serial", workers=0, quiet=True)
+    assert_same_results(tmp_path / "serial", tmp_path / "cluster")
+
+
+@pytest.mark.slow
+def test_a_task_that_raises_is_a_row_and_diagnose_finds_recurrences(tmp_path, capsys):
+    """diagnose campaign over two short mission recordings and a damaged file, on a local cluster."""
+    from ground.campaign.tasks import execute
+
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    base = parse_spec(SMALL, tmp_path / "m.toml")
+    for t in base.tasks[:2]:  # two 7 s recordings flown by the campaign's own mission task
+        (rec / f"{t.id}.tlog").write_bytes(execute(t.kind, t.inputs)["files"]["mission.tlog"])
+    (rec / "damaged.tlog").write_bytes(bytes(range(256)) * 12)
+    spec = write_spec(tmp_path, "kind = 'diagnose'\n[diagnose]\nrecordings = 'rec/*.tlog'\ndraws = 2\n")
+    assert main(["campaign", str(spec), "--out", str(tmp_path / "out"), "--workers", "1"]) == 0
+    cap = capsys.readouterr()
+    assert "3/3 tasks have a row: 2 ok, 1 raised, 0 lost" in cap.out
+    rows = {r["label"]: r for r in read_table(tmp_path / "out")}
+    bad = rows["rec/damaged.tlog"]
+    assert bad["status"] == "error" and bad["error"].startswith("RecordingError: ") and "damaged.tlog" in bad["error"]
+    good = [r for r in rows.values() if r["status"] == "ok"]
+    assert len(good) == 2 and all(r["error"] is None and r["recording_s"] > 6 for r in good)
+    assert all((tmp_path / "out" / "tasks" / r["task_id"] / "report.json").exists() for r in good)
+    page = (tmp_path / "out" / "index.html").read_text()
+    assert "Findings that recur" in page and "Tasks that raised" in page and "RecordingError" in page
+
+
+@pytest.mark.slow
+def test_a_prove_case_on_the_local_cluster_gives_the_benchmark_table(tmp_path, capsys):
+    spec = write_spec(tmp_path, "kind = 'prove'\n[prove]\nsplit = 'dev'\nindices = [0, 14, 15]\n"
+                                "max_duration_s = 60\ndraws = 2\n")  # dev-000 flies 180 s: left out
+    assert main(["campaign", str(spec), "--out", str(tmp_path / "out"), "--workers", "1", "--quiet"]) == 0
+    rows = read_table(tmp_path / "out")
+    assert [r["index"] for r in rows] == [14, 15] and all(r["status"] == "ok" for r in rows)
+    assert rows[0]["case"] == "dev-014 surface_proximity x1.0"
+    assert json.loads((tmp_path / "out" / "campaign.json").read_text())["skipped_by_spec"] == 1
+    files = set(os.listdir(tmp_path / "out" / "tasks" / rows[0]["task_id"]))
+    assert {"dev_014.tlog", "dev_014.json", "dev_014.nominal.toml", "row.json"} <= files
+    page = (tmp_path / "out" / "index.html").read_text()
+    assert "controls: false findings" in page and "confusion" in page  # family_table with its intervals
