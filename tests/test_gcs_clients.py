@@ -87,3 +87,58 @@ def test_mavproxy_detects_1_1_loads_every_parameter_sets_a_gain_arms_and_changes
 # -- MAVSDK ---------------------------------------------------------------------------------------
 
 mavsdk = pytest.importorskip("mavsdk", reason="MAVSDK not installed (pip install '.[test]')")
+
+
+@pytest.mark.slow
+def test_mavsdk_connects_reads_attitude_and_depth_gets_and_sets_a_parameter_arms_and_disarms(tmp_path):
+    import math
+
+    from mavsdk import ComponentType, Configuration, Mavsdk
+    from mavsdk.plugins.action import Action
+    from mavsdk.plugins.param import Param
+    from mavsdk.plugins.param.param import ParamError
+    from mavsdk.plugins.telemetry import Telemetry
+
+    port = free_udp_port()
+    sdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+    from mavsdk import ConnectionResult
+
+    assert sdk.add_any_connection(f"udpin://127.0.0.1:{port}") == ConnectionResult.SUCCESS
+    # MAVSDK's ground station is system 245: the robot takes commands from it when told to
+    robot = Robot(port, LoopConfig(ground_systems=(255, 245), parameter_file=str(tmp_path / "asr4.params"))).start()
+    try:
+        system = sdk.first_autopilot(timeout_s=15.0)
+        assert system is not None, "MAVSDK found no autopilot"
+        telemetry, param, action = Telemetry(system), Param(system), Action(system)
+        time.sleep(1.5)  # a few ATTITUDE at 10 Hz
+        att = telemetry.attitude_euler()
+        roll, pitch, _ = robot.loop.estimator.estimate.euler_rad
+        assert abs(att.roll_deg - math.degrees(roll)) < 3 and abs(att.pitch_deg - math.degrees(pitch)) < 3
+        telemetry.set_rate_position_velocity_ned(5.0)  # SET_MESSAGE_INTERVAL(LOCAL_POSITION_NED)
+        time.sleep(1.0)
+        pos = telemetry.position_velocity_ned().position
+        assert math.isnan(pos.north_m) and math.isnan(pos.east_m)  # no horizontal position under water
+        assert pos.down_m == pytest.approx(robot.loop.estimator.estimate.depth_m, abs=0.05)
+        assert 0.05 < pos.down_m < 0.3  # floating: the sphere's cap above the surface (0.13 m by hand)
+
+        assert param.get_param_float("CTL_YAW_BW") == pytest.approx(2.0)
+        param.set_param_float("CTL_YAW_BW", 1.5)
+        assert robot.loop.controller.gains.yaw_bandwidth_rad_s == pytest.approx(1.5)
+        assert param.get_param_float("CTL_YAW_BW") == pytest.approx(1.5)
+        with pytest.raises(ParamError):
+            param.set_param_float("CTL_YAW_BW", 60.0)  # out of range: the old value comes back
+        assert robot.loop.controller.gains.yaw_bandwidth_rad_s == pytest.approx(1.5)
+        names = {p.name for p in param.get_all_params().float_params}
+        assert names == {p.name for p in P.PARAMS}
+
+        action.arm()
+        assert robot.loop.armed
+        deadline = time.monotonic() + 5
+        while not telemetry.armed() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert telemetry.armed()
+        action.disarm()
+        assert not robot.loop.armed
+    finally:
+        robot.stop()
+        sdk.destroy()
