@@ -86,13 +86,12 @@ def test_mavproxy_detects_1_1_loads_every_parameter_sets_a_gain_arms_and_changes
 
 # -- MAVSDK ---------------------------------------------------------------------------------------
 
-mavsdk = pytest.importorskip("mavsdk", reason="MAVSDK not installed (pip install '.[test]')")
-
 
 @pytest.mark.slow
 def test_mavsdk_connects_reads_attitude_and_depth_gets_and_sets_a_parameter_arms_and_disarms(tmp_path):
     import math
 
+    pytest.importorskip("mavsdk", reason="MAVSDK not installed (pip install '.[test]')")
     from mavsdk import ComponentType, Configuration, Mavsdk
     from mavsdk.plugins.action import Action
     from mavsdk.plugins.param import Param
