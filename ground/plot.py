@@ -213,6 +213,12 @@ def make_plots(path, out_dir, vehicle=None) -> dict:
         s = rec.servo
         if s is None or not len(s.time_s):
             return "no actuator output in this recording (no SERVO_OUTPUT_RAW / RCOU)"
+        if vehicle.fixed:  # fixed thrusters: PWM through the vehicle file's thrust curve (spec 3.1)
+            u = servo_commands()
+            for i in range(len(vehicle.fixed)):
+                ax.plot(s.time_s, u[:, vehicle.n_jets + i], label=f"thruster {i + 1}", lw=0.8)
+            ax.set_ylabel("commanded static thrust (N), [fixed_thruster] curve")
+            return None
         if ardupilot:
             used = [c for c in range(16) if np.any(s.pwm_us[:, c] > 0)]
             for c in used:
@@ -233,6 +239,8 @@ def make_plots(path, out_dir, vehicle=None) -> dict:
         s = rec.servo
         if s is None or not len(s.time_s):
             return "no actuator output in this recording (no SERVO_OUTPUT_RAW / RCOU)"
+        if not vehicle.n_jets:
+            return f"no joints: {vehicle.name} has fixed thrusters only (see jets.png for their thrust)"
         if ardupilot:
             return "no jet joints: an ArduPilot vehicle with fixed thrusters (see jets.png for PWM)"
         k = vehicle.n_units

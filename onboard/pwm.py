@@ -39,7 +39,7 @@ def pwm_to_command(v: Vehicle, pwm_us) -> np.ndarray:
         return np.concatenate([n, a, b])
     widths = pwm[_index(v.pwm.fixed_channels)]
     t = np.where(widths >= NO_PULSE_BELOW_US, fixed.thrust_of_pwm(v.fixed_thruster, widths), 0.0)
-    z = np.zeros(len(v.fixed))
+    z = np.zeros_like(t)  # no joints; pwm_us may be (16, samples): column-wise, like the jets
     return np.concatenate([n, t, a, z, b, z])
 
 

@@ -283,7 +283,16 @@ def _positive(name: str, value) -> float:
 # ------------------------------------------------------------------------------------------------
 # thrust
 
+def _no_jets(vehicle, method: str) -> None:
+    """The seed methods of jets (000: K(J); 004: azimuth transients) need a vectored water-jet."""
+    if not vehicle.n_jets:
+        raise InputError(f"{vehicle.name} has no vectored water-jets: `identify {method}` fits a jet's "
+                         f"{'K(J) of seed 000' if method == 'thrust' else 'azimuth transients of seed 004'}; "
+                         "its fixed thrusters' curve is the [fixed_thruster] table of the vehicle file")
+
+
 def _thrust(args, vehicle) -> int:
+    _no_jets(vehicle, "thrust")
     from . import thrust as th
 
     rho = _positive("--rho", args.rho if args.rho is not None else vehicle.environment.rho)
@@ -702,6 +711,7 @@ _RIG_COLUMNS = ("t", "alpha_rate", "beta_rate", "axial_loss", "lateral_alpha", "
 
 
 def _azimuth(args, vehicle) -> int:
+    _no_jets(vehicle, "azimuth")
     from . import azimuth as az
 
     rows = [r.strip() for r in args.rows.split(",") if r.strip()]
