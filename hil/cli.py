@@ -29,7 +29,11 @@ def configure(parser) -> None:
     mode.add_argument("--realtime", action="store_true", help="follow the wall clock")
     parser.add_argument("--json-sitl", action="store_true", help="speak ArduPilot's SITL JSON physics interface instead")
     parser.add_argument("--out", default=None, metavar="REC.tlog", help="record everything sent and received")
-    parser.add_argument("--vehicle", default=None, help="vehicle TOML (default: the reference vehicle asr4)")
+    parser.add_argument("--vehicle", default=None,
+                        help="vehicle TOML or a packaged vehicle's name: asr4 (default), bluerov2_heavy")
+    parser.add_argument("--jet-neutral", type=float, default=None, metavar="US",
+                        help="set the vehicle's [pwm] jet_neutral: PWM at which a one-way jet stops (1500 for "
+                             "ArduSub's two-way motor outputs)")
     parser.add_argument("--seed", type=int, default=0, help="sensor noise seed (default 0)")
     parser.add_argument("--depth", type=float, default=0.0, help="initial depth in m (default 0: at the surface)")
     parser.add_argument("--rate", type=float, default=None, metavar="HZ", help="frame rate (default: the IMU rate)")
@@ -59,6 +63,8 @@ def run(args) -> int:
 
     try:
         vehicle = load_vehicle(args.vehicle)
+        if getattr(args, "jet_neutral", None) is not None:
+            vehicle = vehicle.with_values({"pwm.jet_neutral": args.jet_neutral})
         key = load_key(args.key) if getattr(args, "key", None) else None
     except (VehicleFileError, SigningError) as exc:
         print(f"jetloop hil: {exc}", file=sys.stderr)
@@ -153,8 +159,8 @@ def _json_sitl(args, vehicle) -> int:
         print("jetloop hil: --json-sitl listens for SITL's servo packets: use --link udpin:HOST:PORT", file=sys.stderr)
         return 2
     backend = JsonSitlBackend(vehicle, seed=args.seed, depth_m=args.depth)
-    print(f"jetloop hil: SITL JSON physics for {vehicle.name} on udp {ep.host}:{ep.port} "
-          f"(start ArduSub SITL with --model JSON:127.0.0.1)", flush=True)
+    print(f"jetloop hil: SITL JSON physics for {vehicle.name} on udp {ep.host}:{ep.port} (start ArduSub SITL "
+          f"with --model JSON:127.0.0.1 -l 33.810313,-118.393867,0,185: a sea-level home)", flush=True)
     try:
         backend.serve(ep.host, ep.port, duration_s=args.duration)
     except OSError as exc:
