@@ -961,7 +961,7 @@ class FixedQpAllocator:
             self._solver.update(Px=self._Px[with_change])
             self._P_with_change = with_change
         self._solver.update(q=q, l=lo, u=hi)
-        res = self._solver.solve()
+        res = self._solver.solve(raise_error=False)
         ok = res.info.status_val in _SOLVED and res.x is not None and np.all(np.isfinite(res.x))
         if not ok:
             T = np.zeros(self.k) if prev is None else np.clip(prev.thrust_n, lo, hi)

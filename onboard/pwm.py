@@ -67,6 +67,14 @@ def normalised_to_command(v: Vehicle, controls) -> np.ndarray:
     k = v.n_units
     c = np.asarray(controls, dtype=float)[: 3 * k]
     c = np.where(np.isfinite(c), c, 0.0)
+    if v.fixed:  # fixed thrusters: -1..1 of their reverse and forward reach; no joints
+        j = v.n_jets
+        t_min, t_max = fixed.thrust_limits(v.fixed_thruster)
+        f = np.clip(c[j:k], -1, 1)
+        joints = np.clip(c[k:3 * k], -1, 1) * v.servo.angle_limit
+        joints[j:k] = joints[k + j:] = 0.0
+        return np.concatenate([np.clip(c[:j], 0, 1) * v.thruster.n_max,
+                               np.where(f > 0, f * t_max, -f * t_min), joints])
     return np.concatenate([
         np.clip(c[:k], 0, 1) * v.thruster.n_max,
         np.clip(c[k:3 * k], -1, 1) * v.servo.angle_limit,
@@ -76,6 +84,14 @@ def normalised_to_command(v: Vehicle, controls) -> np.ndarray:
 def command_to_normalised(v: Vehicle, command) -> np.ndarray:
     k = v.n_units
     c = np.asarray(command, dtype=float)
+    if v.fixed:
+        j = v.n_jets
+        t_min, t_max = fixed.thrust_limits(v.fixed_thruster)
+        t = c[j:k]
+        joints = np.clip(c[k:3 * k] / v.servo.angle_limit, -1, 1)
+        joints[j:k] = joints[k + j:] = 0.0
+        return np.concatenate([np.clip(c[:j] / v.thruster.n_max, 0, 1),
+                               np.clip(np.where(t > 0, t / t_max, -t / t_min), -1, 1), joints])
     return np.concatenate([
         np.clip(c[:k] / v.thruster.n_max, 0, 1),
         np.clip(c[k:3 * k] / v.servo.angle_limit, -1, 1),

@@ -280,3 +280,13 @@ def test_packaged_vehicle_by_name_and_its_sources_are_cited():
     assert HEAVY.name == "bluerov2_heavy" and HEAVY.n_units == 8 and HEAVY.n_jets == 0
     assert "10.3390/jmse10121898" in HEAVY_TEXT and "AP_Motors6DOF.cpp" in HEAVY_TEXT
     assert HEAVY.body.mass == 13.5 and HEAVY.hydro.added_mass[2] == 18.6863
+
+
+def test_normalised_controls_span_each_thrusters_reverse_and_forward_reach():
+    from onboard.pwm import command_to_normalised, normalised_to_command
+
+    c = normalised_to_command(HEAVY, [1.0, -1.0, 0.5, -0.5, 0, 0, 0, 0] + [0.3] * 16)
+    assert c[:4] == pytest.approx([51.4362273206973, -39.9079290382407, 0.5 * 51.4362273206973,
+                                   -0.5 * 39.9079290382407])
+    assert np.all(c[8:] == 0.0)  # no joints, whatever the controls say
+    assert command_to_normalised(HEAVY, c)[:4] == pytest.approx([1.0, -1.0, 0.5, -0.5])
