@@ -21,7 +21,9 @@ each such message here; onboard.loop keeps only the flying):
   COMMAND_INT is read as the same command). Here: MAV_CMD_REQUEST_MESSAGE (AUTOPILOT_VERSION,
   HEARTBEAT, SYS_STATUS, SYSTEM_TIME, ATTITUDE, LOCAL_POSITION_NED, MESSAGE_INTERVAL: the ones the
   robot can fill truthfully; any other DENIED), REQUEST_AUTOPILOT_CAPABILITIES, GET_MESSAGE_INTERVAL.
-  The message goes out after its ACK. REQUEST_PROTOCOL_VERSION is UNSUPPORTED: the dialect the robot
+  The message goes out after its ACK. REQUEST_MESSAGE(AVAILABLE_MODES, 435) answers the standard
+  modes protocol with each mode's number and name (QGroundControl names a generic vehicle's modes
+  from it). REQUEST_PROTOCOL_VERSION is UNSUPPORTED: the dialect the robot
   carries (pymavlink's ardupilotmega) has no PROTOCOL_VERSION message.
 - **Modes**: SET_MODE (legacy message) is read as MAV_CMD_DO_SET_MODE; HEARTBEAT.base_mode carries
   the standard flags of each mode (stabilize, guided, manual input) beside the custom number.
@@ -37,6 +39,7 @@ each such message here; onboard.loop keeps only the flying):
 from __future__ import annotations
 
 import math
+import struct
 import time
 import zlib
 
@@ -71,6 +74,32 @@ DATA_STREAMS = {
     mavlink.MAV_DATA_STREAM_RC_CHANNELS: ("SERVO_OUTPUT_RAW",),
     mavlink.MAV_DATA_STREAM_EXTRA3: ("NAMED_VALUE_FLOAT", "DEBUG_FLOAT_ARRAY"),
 }
+
+MODE_NAMES = {0: "Stabilize", 2: "Depth Hold", 4: "Guided", 19: "Manual"}  # AVAILABLE_MODES.mode_name
+
+
+class AvailableModes(mavlink.MAVLink_message):
+    """AVAILABLE_MODES (id 435, MAVLink's standard modes protocol): one mode's number and name, so a
+    ground station that knows no ArduSub numbering (QGroundControl's generic vehicle) can name the
+    modes and offer them. pymavlink 2.4.50's dialects lack it; the layout and CRC extra (134) are
+    those of MAVLink's generated C header (mavlink_msg_available_modes.h)."""
+
+    id = 435
+    msgname = "AVAILABLE_MODES"
+    crc_extra = 134
+    unpacker = struct.Struct("<IIBBB35s")  # custom_mode, properties, number_modes, mode_index, standard_mode, mode_name
+
+    def __init__(self, number_modes: int, mode_index: int, custom_mode: int, name: str):
+        mavlink.MAVLink_message.__init__(self, self.id, self.msgname)
+        self._fieldnames = ["number_modes", "mode_index", "standard_mode", "custom_mode", "properties", "mode_name"]
+        self.number_modes, self.mode_index, self.standard_mode = number_modes, mode_index, 0  # non-standard
+        self.custom_mode, self.properties, self.mode_name = custom_mode, 0, name
+
+    def pack(self, mav, force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(
+            self.custom_mode, self.properties, self.number_modes, self.mode_index, self.standard_mode,
+            self.mode_name.encode()), force_mavlink1=force_mavlink1)
+
 
 MESSAGES = frozenset({
     "HEARTBEAT", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET", "COMMAND_INT", "SET_MODE",
@@ -330,6 +359,12 @@ class Microservices:
             p1 = float(m.param1)
             if not (math.isfinite(p1) and p1.is_integer()):
                 return mavlink.MAV_RESULT_DENIED
+            if int(p1) == AvailableModes.id:
+                modes = self.available_modes(m.param2)
+                if not modes:
+                    return mavlink.MAV_RESULT_DENIED
+                self._after_ack.extend(modes)
+                return mavlink.MAV_RESULT_ACCEPTED
             msg = self.message(int(p1), m)
             if msg is None:
                 return mavlink.MAV_RESULT_DENIED
@@ -383,6 +418,18 @@ class Microservices:
                 return mavlink.MAVLink_message_interval_message(int(request.param1), 0)  # not supported
             return mavlink.MAVLink_message_interval_message(int(request.param1), int(1e6 / hz) if hz > 0 else -1)
         return None
+
+    @staticmethod
+    def available_modes(which) -> list:
+        """AVAILABLE_MODES of every mode (`which` 0) or of the mode with that index (1-based)."""
+        modes = sorted(MODE_NAMES.items())
+        n = len(modes)
+        out = [AvailableModes(n, i, number, name) for i, (number, name) in enumerate(modes, 1)]
+        try:
+            k = int(which) if math.isfinite(float(which)) else -1
+        except (TypeError, ValueError):
+            k = -1
+        return out if k == 0 else [a for a in out if a.mode_index == k]
 
     def autopilot_version(self):
         major, minor, patch = VERSION

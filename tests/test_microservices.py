@@ -286,3 +286,13 @@ def test_sys_status_claims_only_what_the_robot_has_and_no_fence_breach(station):
     assert s.onboard_control_sensors_health & S.MAV_SYS_STATUS_GEOFENCE  # no fence, so never breached
     assert not s.onboard_control_sensors_health & S.MAV_SYS_STATUS_SENSOR_3D_GYRO  # no IMU heard: not healthy
     assert not s.onboard_control_sensors_health & S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+
+
+def test_available_modes_one_by_index_or_denied_for_an_index_that_does_not_exist(station):
+    before = station.gcs.unknown_packets  # pymavlink 2.4.50 has no AVAILABLE_MODES: counted unknown here
+    station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 435, 2, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_REQUEST_MESSAGE).result == mavlink.MAV_RESULT_ACCEPTED
+    station.collect("HEARTBEAT", 0.5)
+    assert station.gcs.unknown_packets == before + 1
+    station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 435, 9, 0, 0, 0, 0, 0))
+    assert station.ack(mavlink.MAV_CMD_REQUEST_MESSAGE).result == mavlink.MAV_RESULT_DENIED
