@@ -111,6 +111,35 @@ def _no_data(ax, text):
     ax.set_yticks([])
 
 
+REPLAY_LEAD_S, REPLAY_TAIL_S, REPLAY_DT_S = 3.0, 5.0, 0.01
+
+
+def replay_fixed(rec, vehicle, t0: float, t1: float, dt_s: float = REPLAY_DT_S):
+    """The recorded SERVO_OUTPUT_RAW rows (each held until the next) through the vehicle model from
+    t0 to t1: (t, roll/pitch/yaw rad (n, 3), depth m). The start is the recorded attitude and
+    pressure depth at t0, at rest (a recording holds no body velocity). Pure: onboard.model's RK4."""
+    from onboard import model
+    from onboard.pwm import pwm_to_command
+    from onboard.sensors import depth_from_pressure
+
+    a, pr, sv = rec.attitude, rec.pressure, rec.servo
+    e0 = [float(np.interp(t0, a.time_s, np.unwrap(a.euler_rad[:, i]))) for i in range(3)]
+    d0 = float(np.interp(t0, pr.time_s, depth_from_pressure(pr.press_abs_pa, vehicle)))
+    cmds = pwm_to_command(vehicle, np.asarray(sv.pwm_us, float).T).T
+    p = model.pack_params(vehicle)
+    x = model.initial_state(vehicle, d0)
+    x[3:7] = model.euler_to_quat(*e0)
+    t = t0 + dt_s * np.arange(int(round((t1 - t0) / dt_s)) + 1)
+    rows = np.clip(np.searchsorted(sv.time_s, t, side="right") - 1, 0, len(sv.time_s) - 1)
+    euler, depth = np.empty((len(t), 3)), np.empty(len(t))
+    for i in range(len(t)):
+        euler[i] = model.quat_to_euler(x[3:7])
+        depth[i] = x[2] - vehicle.environment.surface_depth
+        if i + 1 < len(t):
+            x = model.rk4_steps(x, cmds[rows[i]], p, dt_s, 1)
+    return t, euler, depth
+
+
 def make_plots(path, out_dir, vehicle=None) -> dict:
     """Write DIR/<panel>.png for every panel and DIR/index.html; returns the page's summary."""
     import matplotlib
@@ -301,12 +330,43 @@ def make_plots(path, out_dir, vehicle=None) -> dict:
             ax2.step(edges[:-1], counts / width, where="post", color="0.6", lw=0.6)
             ax2.set_ylabel("packets/s (grey)")
 
+    def replay(ax):
+        """The thrusters' active stretch replayed through the model against the recording."""
+        s, a, pr = rec.servo, rec.attitude, rec.pressure
+        if s is None or a is None or pr is None or not (len(s.time_s) and len(a.time_s) and len(pr.time_s)):
+            return "nothing to replay: the recording needs actuator outputs, attitude and pressure"
+        thrust = servo_commands()[:, vehicle.n_jets:vehicle.n_units]
+        active = np.flatnonzero(np.any(thrust != 0.0, axis=1))
+        if not len(active):
+            return "nothing to replay: every thruster stays in its dead band throughout"
+        t0 = max(float(s.time_s[active[0]]) - REPLAY_LEAD_S, float(a.time_s[0]), float(pr.time_s[0]))
+        t1 = min(float(s.time_s[active[-1]]) + REPLAY_TAIL_S, float(a.time_s[-1]))
+        t, e_sim, d_sim = replay_fixed(rec, vehicle, t0, t1)
+        m = (a.time_s >= t0) & (a.time_s <= t1)
+        e_rec = np.unwrap(a.euler_rad[m], axis=0)
+        for i, lbl in enumerate(("roll", "pitch", "yaw")):
+            line, = ax.plot(a.time_s[m], np.degrees(e_rec[:, i] - e_rec[0, i]), lw=0.9, label=f"{lbl} recorded")
+            ax.plot(t, np.degrees(np.unwrap(e_sim[:, i]) - e_sim[0, i]), "--", color=line.get_color(), lw=0.9,
+                    label=f"{lbl} model")
+        ax.set_ylabel("change since the replay's start (deg)")
+        from onboard.sensors import depth_from_pressure
+
+        mp = (pr.time_s >= t0) & (pr.time_s <= t1)
+        ax2 = ax.twinx()
+        ax2.plot(pr.time_s[mp], depth_from_pressure(pr.press_abs_pa[mp], vehicle), color="0.3", lw=0.8)
+        ax2.plot(t, d_sim, "--", color="0.3", lw=0.8)
+        ax2.set_ylabel("depth (m): recorded solid, model dashed")
+        ax2.invert_yaxis()
+        return None
+
     titles = {"attitude": "Attitude", "depth": "Depth", "velocity": "Velocity", "jets": "Jets",
               "joints": "Joint angles", "allocation": "Allocation residual", "timing": "Loop timing",
-              "link": "Link quality"}
+              "link": "Link quality",
+              "replay": f"Replay: the recorded thruster outputs through the {vehicle.name} model"}
     draws = {"attitude": attitude, "depth": depth, "velocity": velocity, "jets": jets, "joints": joints,
-             "allocation": allocation, "timing": timing, "link": link}
-    for name in PANELS:
+             "allocation": allocation, "timing": timing, "link": link, "replay": replay}
+    # a vehicle of fixed thrusters (an ArduSub vehicle) also gets the replay of its recorded outputs
+    for name in PANELS + (("replay",) if vehicle.fixed else ()):
         panel(name, titles[name], draws[name])
     summary = rec.summary()
     summary["panels"] = notes
@@ -325,7 +385,7 @@ def _write_index(out: Path, path: Path, summary: dict) -> None:
     msgs = ", ".join(f"{esc(k)} {v}" for k, v in summary["messages"].items())
     figs = "".join(
         f"<h2>{esc(n)}</h2>" + (f"<p><em>{esc(summary['panels'][n])}</em></p>" if summary["panels"][n] else "")
-        + f'<img src="{n}.png" alt="{esc(n)}">' for n in PANELS)
+        + f'<img src="{n}.png" alt="{esc(n)}">' for n in summary["panels"])
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{esc(path.name)}</title>"
             "<style>body{font-family:sans-serif;max-width:960px;margin:auto}img{width:100%}"
             "td{padding:2px 8px}</style></head><body>"
