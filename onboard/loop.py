@@ -508,6 +508,7 @@ class OnboardLoop:
         self.services = Microservices(self)  # identity, parameters, requests, mission (ground stations)
         if warm_up:
             self._warm_up()
+        self._last_rx_wall = time.monotonic()  # idle from here: construction and warm-up take ~0.6 s
 
     def _warm_up(self) -> None:
         """Fly a few control steps of a scratch loop (disarmed, then armed with a depth, yaw and
