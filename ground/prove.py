@@ -776,14 +776,20 @@ def configure(parser) -> None:
     parser.add_argument("--cases", type=int, default=30, help="benchmark: how many cases of the split (default 30)")
     parser.add_argument("--first", type=int, default=0, help="benchmark: index of the first case (default 0)")
     parser.add_argument("--workers", type=int, default=2, help="benchmark: worker processes (default 2)")
+    parser.add_argument("--dask", action="store_true",
+                        help="benchmark: run the cases on jetloop campaign's engine (a local Dask cluster of --workers "
+                             "processes; results.parquet and index.html beside family.json)")
+    parser.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                        help="benchmark: run the cases on this existing Dask scheduler (implies --dask)")
     parser.add_argument("--quiet", action="store_true")
 
 
 def run(args) -> int:
-    from onboard.vehicle import VehicleFileError
+    from onboard.vehicle import VehicleFileError, require_jets
 
     try:
         reference = load_vehicle(args.vehicle)
+        require_jets(reference, "prove")
     except VehicleFileError as exc:
         print(f"jetloop prove: {exc}", file=sys.stderr)
         return 2
@@ -801,7 +807,14 @@ def run(args) -> int:
             print("jetloop prove: --cases and --workers must be at least 1, --first at least 0", file=sys.stderr)
             return 2
         say = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-        rows = run_family(args.split, args.cases, out, args.workers, args.first, say)
+        if args.dask or args.scheduler:  # the campaign engine (issue 14)
+            from ground.campaign.engine import run_prove_family
+
+            rows = run_prove_family(args.split, args.cases, out, args.workers, args.first, args.scheduler,
+                                    args.vehicle, quiet=args.quiet)
+            (out / "family.json").write_text(json.dumps({"split": args.split, "cases": rows}, indent=1) + "\n")
+        else:
+            rows = run_family(args.split, args.cases, out, args.workers, args.first, say)
         text = family_table(rows)
         (out / "family.md").write_text(text + "\n")
         print(text)

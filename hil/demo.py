@@ -553,10 +553,11 @@ def configure(parser) -> None:
 
 
 def run(args) -> int:
-    from onboard.vehicle import VehicleFileError
+    from onboard.vehicle import VehicleFileError, require_jets
 
     try:
         vehicle = load_vehicle(args.vehicle)
+        require_jets(vehicle, "demo")
     except VehicleFileError as exc:
         print(f"jetloop demo: {exc}", file=sys.stderr)
         return 2

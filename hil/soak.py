@@ -996,13 +996,14 @@ def configure(parser) -> None:
 
 
 def run(args) -> int:
-    from onboard.vehicle import VehicleFileError
+    from onboard.vehicle import VehicleFileError, require_jets
 
     if not (math.isfinite(args.duration) and args.duration > 0):
         print(f"jetloop soak: --duration must be a positive number of seconds, got {args.duration}", file=sys.stderr)
         return 2
     try:
         vehicle = load_vehicle(args.vehicle)
+        require_jets(vehicle, "soak")
     except VehicleFileError as exc:
         print(f"jetloop soak: {exc}", file=sys.stderr)
         return 2

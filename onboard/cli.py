@@ -82,10 +82,11 @@ def run(args) -> int:
     from onboard.params import ParameterFileError, default_path
     from onboard.loop import LoopConfig, OnboardLoop, VehicleClock, WallClock
     from onboard.signing import GCS_SYSTEMS, SigningError, load_key
-    from onboard.vehicle import VehicleFileError, load_vehicle
+    from onboard.vehicle import VehicleFileError, load_vehicle, require_jets
 
     try:
         vehicle = load_vehicle(args.vehicle)
+        require_jets(vehicle, "onboard")
         key = load_key(args.key) if args.key else None
         ground_systems = tuple(args.ground_system) if args.ground_system else GCS_SYSTEMS
         for sysid in ground_systems:

@@ -340,6 +340,16 @@ def load_vehicle(path: str | Path | None = None) -> Vehicle:
     return parse_vehicle(text, source=str(path))
 
 
+def require_jets(v: Vehicle, command: str) -> Vehicle:
+    """`v` if it has vectored jets; else a one-line VehicleFileError saying who flies it instead
+    (the onboard loop, its controller and allocator are written for vectored water-jets)."""
+    if not v.n_jets:
+        raise VehicleFileError(
+            f"{v.source}: {v.name} has fixed thrusters only: `jetloop {command}` runs the onboard loop, which "
+            "flies vectored water-jets; fly it with its autopilot (ArduSub SITL: jetloop hil --json-sitl)")
+    return v
+
+
 def parse_vehicle(text: str, source: str = "<string>") -> Vehicle:
     """Parse vehicle TOML text; every error names `source`, the key and what was expected."""
     try:

@@ -290,3 +290,17 @@ def test_normalised_controls_span_each_thrusters_reverse_and_forward_reach():
                                    -0.5 * 39.9079290382407])
     assert np.all(c[8:] == 0.0)  # no joints, whatever the controls say
     assert command_to_normalised(HEAVY, c)[:4] == pytest.approx([1.0, -1.0, 0.5, -0.5])
+
+
+@pytest.mark.parametrize("argv", [
+    ["onboard", "--vehicle", "bluerov2_heavy", "--lockstep", "--link", "udpout:127.0.0.1:14999"],
+    ["demo", "--vehicle", "bluerov2_heavy"],
+    ["soak", "--vehicle", "bluerov2_heavy", "--duration", "200"],
+    ["prove", "--vehicle", "bluerov2_heavy"],
+])
+def test_commands_that_run_the_onboard_loop_refuse_a_vehicle_without_jets_in_one_line(argv, capsys):
+    from ground.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "bluerov2_heavy has fixed thrusters only" in err and "jetloop hil --json-sitl" in err
