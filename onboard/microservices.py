@@ -32,6 +32,9 @@ each such message here; onboard.loop keeps only the flying):
 - **Mission**: the robot holds no mission items: MISSION_REQUEST_LIST of any type -> MISSION_COUNT 0;
   an upload of items -> MISSION_ACK NO_SPACE (fence, rally: UNSUPPORTED); an empty upload or
   MISSION_CLEAR_ALL -> ACCEPTED; a request for an item -> INVALID_SEQUENCE.
+- **MAVFTP**: the robot serves no files (no FTP capability bit); every FILE_TRANSFER_PROTOCOL
+  request is answered NAK UnknownCommand at once, so a ground station that tries MAVFTP first
+  (MAVProxy fetches parameters that way) falls back without waiting for a timeout.
 - **Streams**: REQUEST_DATA_STREAM (MAVProxy's and older ground stations' way) sets the rates of the
   streams it names, as SET_MESSAGE_INTERVAL does.
 """
@@ -105,8 +108,9 @@ MESSAGES = frozenset({
     "HEARTBEAT", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET", "COMMAND_INT", "SET_MODE",
     "TIMESYNC", "PING", "REQUEST_DATA_STREAM", "AUTOPILOT_VERSION_REQUEST", "MISSION_REQUEST_LIST",
     "MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_COUNT", "MISSION_CLEAR_ALL", "MISSION_ITEM",
-    "MISSION_ITEM_INT",
+    "MISSION_ITEM_INT", "FILE_TRANSFER_PROTOCOL",
 })
+FTP_NAK, FTP_ERR_UNKNOWN_COMMAND = 129, 7  # MAVLink FTP opcode NAK, error UnknownCommand
 
 
 class Identity:
@@ -275,6 +279,13 @@ class Microservices:
                 self.loop.rates.set_hz(n, hz)
         elif name.startswith("MISSION_"):
             self._mission(m, out)
+        elif name == "FILE_TRANSFER_PROTOCOL":  # no file service: every request NAKed at once, so a
+            req = bytes(m.payload[:12])        # ground station falls back (MAVProxy: PARAM_REQUEST_LIST)
+            seq, session, opcode = struct.unpack_from("<HBB", req)
+            nak = struct.pack("<HBBBBBBIB", (seq + 1) & 0xFFFF, session, FTP_NAK, 1, opcode, 0, 0, 0,
+                              FTP_ERR_UNKNOWN_COMMAND)
+            out.send(mavlink.MAVLink_file_transfer_protocol_message(0, m.get_srcSystem(), m.get_srcComponent(),
+                                                                    list(nak.ljust(251, b"\0"))))
 
     # -- parameters -----------------------------------------------------------------------------
     def _param_value(self, i: int):

@@ -296,3 +296,14 @@ def test_available_modes_one_by_index_or_denied_for_an_index_that_does_not_exist
     assert station.gcs.unknown_packets == before + 1
     station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 435, 9, 0, 0, 0, 0, 0))
     assert station.ack(mavlink.MAV_CMD_REQUEST_MESSAGE).result == mavlink.MAV_RESULT_DENIED
+
+
+def test_mavftp_requests_get_an_immediate_nak_not_silence(station):
+    import struct
+
+    req = struct.pack("<HBBBBBBI", 5, 0, 4, 0, 0, 0, 0, 0) + b"@PARAM/param.pck"  # OpenFileRO
+    station.send(mavlink.MAVLink_file_transfer_protocol_message(0, 1, 1, list(req.ljust(251, b"\0"))))
+    m = station.wait("FILE_TRANSFER_PROTOCOL")
+    seq, session, opcode, size, req_opcode = struct.unpack_from("<HBBBB", bytes(m.payload))
+    assert (m.target_system, m.target_component) == (255, 190)
+    assert (seq, opcode, size, req_opcode, m.payload[12]) == (6, 129, 1, 4, 7)  # NAK, UnknownCommand
