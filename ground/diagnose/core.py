@@ -28,7 +28,9 @@ SHOOT_S = 2.0  # multiple-shooting window length for the held-out NRMSE
 WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re-fly each from its start)
 RANK_TOP = 4  # significant candidates fitted nonlinearly to rank them
 SECOND_MIN_GAIN = 0.15  # a second effect must add this share of the first one's held-out drop
-LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn)
+LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn), at least
+LEAD_TAUS = 5.0  # ... and this many of the actuator subsystem's slowest time constants (lead_seconds)
+LEAD_MAX_S = 60.0
 MIN_DRAWS = 2  # fewer calibrated null draws than this: no finding (the thresholds would be guesses)
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
 Z_GATE = 2.5  # the data-driven `unknown` term (not calibrated by the null draws) must lower the
@@ -321,11 +323,33 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     return Diagnosis(report, traj, res0, res1, windows, fits, shots, mdiag)
 
 
+def lead_seconds(vehicle: Vehicle) -> float:
+    """How long the commands before a window must run for its actuator states to have forgotten
+    their start (spec 6: filters at zero): LEAD_TAUS of the slowest time constant among the motor
+    and servo lags and the seed-004 force filters, whose denominators are
+    (s^2 + c s + d)(s^2 + e s + g) (seed 004 eq. 5). The axial-loss filter f1x of asr4 has a pole
+    at -0.10 rad/s: driven by |joint rate| it holds a steady thrust loss of a few tenths of a
+    newton that a 2 s lead-in leaves out, and every window then shows a steady heave force the
+    null draws (started from the lead-in's state) do not (eval controls, 2026-11-25). The moment
+    filter m1z has a slower pole but a zero DC gain (K s^2 / ...): its slow mode carries ~1e-4
+    of the response and is left out."""
+    taus = [vehicle.thruster.motor_time_constant, vehicle.servo.time_constant]
+    at = vehicle.effects.azimuth_transient
+    if vehicle.effects.on("azimuth_transient"):
+        for f in (at.f1x, at.f1y, at.f2x, at.f2z):
+            for c, d in ((f[3], f[4]), (f[5], f[6])):
+                re = np.roots([1.0, c, d]).real
+                if (re < 0).all():  # an unstable or marginal factor has no time constant to wait out
+                    taus.append(float(-1.0 / re.max()))
+    return float(np.clip(LEAD_TAUS * max(taus), LEAD_S, LEAD_MAX_S))
+
+
 def _lead_in(rec, traj, window, vehicle) -> replay.LeadIn:
-    """The LEAD_S of commands before a window (replay.LeadIn): its actuators start mid-flight. The
-    window's smoother starts from its generic prior, as a null draw's does (the same statistic)."""
+    """The commands of the lead_seconds before a window (replay.LeadIn): its actuators start
+    mid-flight. The window's smoother starts from its generic prior, as a null draw's does (the
+    same statistic)."""
     t_w, dt = replay.grid_for(window)
-    t_lead = t_w[0] - dt * np.arange(int(round(LEAD_S / dt)), 0, -1)
+    t_lead = t_w[0] - dt * np.arange(int(round(lead_seconds(vehicle) / dt)), 0, -1)
     t_lead = t_lead[t_lead >= rec.servo.time_s[0]]
     cmd = replay.held_commands(rec, vehicle, t_lead) if len(t_lead) else np.zeros((0, 3 * vehicle.n_units))
     return replay.LeadIn(cmd, None)
