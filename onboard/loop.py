@@ -732,7 +732,10 @@ class OnboardLoop:
         self._imu_rank = rank
         self._last_imu_stamp = s.time_s
         if mon is not None:
-            if not mon.imu(s.time_s, s.accel_frd_m_s2, s.gyro_frd_rad_s):
+            # IMU freshness on the loop's clock: in real time the stamps are the sensor source's
+            # boot time, an offset from it (IMU_LOST raised and cleared every tick, issue 16)
+            arrived = s.time_s if self.clock.lockstep else self.clock.now()
+            if not mon.imu(arrived, s.accel_frd_m_s2, s.gyro_frd_rad_s):
                 self._observe(s.time_s)  # time moves on, but a frozen sample is not a fresh one
                 self.stats.frozen_imu += 1
                 return

@@ -307,3 +307,28 @@ def test_mavftp_requests_get_an_immediate_nak_not_silence(station):
     seq, session, opcode, size, req_opcode = struct.unpack_from("<HBBBB", bytes(m.payload))
     assert (m.target_system, m.target_component) == (255, 190)
     assert (seq, opcode, size, req_opcode, m.payload[12]) == (6, 129, 1, 4, 7)  # NAK, UnknownCommand
+
+
+def test_real_time_imu_stamps_on_another_clock_raise_no_imu_lost():
+    """A real autopilot's stamps count from its own boot, not the loop's start: here the loop has
+    run 10 s when the autopilot, booted 5 s ago, starts sending (`jetloop hil --realtime` starts its
+    clock when the controller first speaks, after the loop's warm-up).
+    Before the fix the monitor compared them with the loop clock and raised IMU_LOST at every tick
+    (and cleared it at every sample): thousands of STATUSTEXTs in a ground station."""
+    from onboard import mavlink_codec as codec
+    from onboard.monitor import Fault
+    from onboard.sensors import ImuSample
+
+    link = Link("udpin:127.0.0.1:0")
+    loop = OnboardLoop(load_vehicle(), link, WallClock(), warm_up=False)
+    loop.clock._t0 -= 10.0  # the loop started 10 s ago
+    try:
+        for i in range(80):
+            t = loop.clock.now()
+            loop.handle(codec.encode_imu(ImuSample(t - 5.0, (0.001 * (i % 7), 0.0, -9.81), (0.0, 0.0, 0.0))))
+            loop.step(t)
+            time.sleep(0.01)
+        assert not loop.monitor.faults_seen & Fault.IMU_LOST, loop.stats.fault_events
+        assert not [e for e in loop.stats.fault_events if "IMU_LOST" in e[2]]
+    finally:
+        link.close()
