@@ -8,7 +8,6 @@ client under test (MAVProxy, MAVSDK, a QGroundControl replay), which listens on 
 from __future__ import annotations
 
 import threading
-from dataclasses import replace
 
 from hil.endpoint import HilEndpoint
 from hil.plant import Plant
@@ -25,8 +24,7 @@ class Robot:
         self.ground = Link(f"udpout:127.0.0.1:{ground_port}", 1, 191)
         self.endpoint = HilEndpoint(self.vehicle, self.plant_link, Plant(self.vehicle, seed=seed), lockstep=False,
                                     history=False)
-        cfg = replace(config, control_rate_hz=config.control_rate_hz)
-        self.loop = OnboardLoop(self.vehicle, self.main, WallClock(), cfg, ground=self.ground)
+        self.loop = OnboardLoop(self.vehicle, self.main, WallClock(), config, ground=self.ground)
         self._stop = threading.Event()
         self.errors: list = []
         self._threads = [threading.Thread(target=self._run, args=(f,), daemon=True)

@@ -9,7 +9,6 @@ telemetry of attitude and depth, and none of the warnings a misread vehicle give
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
