@@ -308,6 +308,9 @@ class Microservices:
         else:
             self.params.values[name] = old
         out.send(self._param_value(self.params.index(name)))  # the new value, or the old one echoed
+        if why is None and self.params.last_save_error:  # flying with it; the next start will not have it
+            out.send(mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_WARNING,
+                                                        self.params.last_save_error[:50].encode()))
         if why is not None:  # and why
             self.loop.stats.security.commands_denied += 1
             for reply in self.loop.gate.refusal_text(why):  # STATUSTEXT holds 50 characters

@@ -150,6 +150,7 @@ class Parameters:
         self.values = dict(self.defaults)
         self.path = Path(path) if path is not None else None
         self.save_errors = 0  # sets whose file write failed (the value still took effect)
+        self.last_save_error: str | None = None
         if self.path is not None and self.path.exists():
             self.values.update(load(self.path))
 
@@ -168,16 +169,19 @@ class Parameters:
         return {k: v for k, v in self.values.items() if v != self.defaults[k]}
 
     def set(self, name: str, value: float) -> str | None:
-        """Set and persist one value; why not (nothing changed), else None."""
+        """Set and persist one value; why not (nothing changed), else None. A file that cannot be
+        written leaves the value set and says so in `last_save_error`."""
         why = check(name, value)
         if why is not None:
             return why
         self.values[name] = float(value)
+        self.last_save_error = None
         if self.path is not None:
             try:
                 save(self.path, self.changed())
-            except OSError:
+            except OSError as exc:
                 self.save_errors += 1
+                self.last_save_error = f"{name} not saved: {exc.strerror or exc}"
         return None
 
 

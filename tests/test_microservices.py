@@ -331,3 +331,16 @@ def test_real_time_imu_stamps_on_another_clock_raise_no_imu_lost():
         assert not [e for e in loop.stats.fault_events if "IMU_LOST" in e[2]]
     finally:
         link.close()
+
+
+def test_a_set_that_cannot_be_saved_flies_and_says_it_was_not_saved(tmp_path):
+    s = Station(LoopConfig(parameter_file=str(tmp_path / "no-such-dir" / "v.params")))
+    try:
+        s.send(mavlink.MAVLink_param_set_message(1, 1, b"CTL_ATT_BW", 4.0, 9))
+        assert s.wait("PARAM_VALUE").param_value == pytest.approx(4.0)
+        text = s.wait("STATUSTEXT")
+        assert (text.text if isinstance(text.text, str) else text.text.decode()).startswith(
+            "CTL_ATT_BW not saved: No such file or directory")
+        assert s.loop.controller.gains.attitude_bandwidth_rad_s == pytest.approx(4.0)
+    finally:
+        s.close()
