@@ -42,6 +42,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ardusub", help="path to the ArduSub SITL binary (build/sitl/bin/ardusub)")
     ap.add_argument("--defaults", default=None, help="comma-separated ArduSub default parameter files")
     ap.add_argument("--vehicle", default="bluerov2_heavy")
+    ap.add_argument("--jet-neutral", type=float, default=None, metavar="US",
+                    help="the vehicle's [pwm] jet_neutral (asr4 behind ArduSub: 1500)")
     ap.add_argument("--depth", type=float, default=2.0, help="start depth of the plant, m")
     ap.add_argument("--hold", type=float, default=60.0, help="seconds of each hold (STABILIZE, ALT_HOLD)")
     ap.add_argument("--port", type=int, default=9002)
@@ -61,6 +63,8 @@ def main(argv=None) -> int:
     from onboard.vehicle import load_vehicle
 
     vehicle = load_vehicle(args.vehicle)
+    if args.jet_neutral is not None:
+        vehicle = vehicle.with_values({"pwm.jet_neutral": args.jet_neutral})
     backend = JsonSitlBackend(vehicle, depth_m=args.depth)
     stop = threading.Event()
 
