@@ -13,7 +13,7 @@ from scipy.stats import binomtest, chi2
 from conftest import ARDUSUB, shared_file
 from ground import prove
 from ground.cli import main
-from ground.diagnose import decide, estimate, null, replay
+from ground.diagnose import core, decide, estimate, null, replay
 from ground.diagnose.candidates import Evaluator
 from ground.recording import read_recording
 from hil.plant import Plant
@@ -118,6 +118,44 @@ def test_null_draw_from_the_true_state_is_the_plant(tmp_path_factory):
     np.testing.assert_allclose(draw.imu.gyro_frd_rad_s[inside], win.imu.gyro_frd_rad_s[inside], atol=2e-3)
     np.testing.assert_allclose(draw.imu.accel_frd_m_s2[inside], win.imu.accel_frd_m_s2[inside], atol=2e-2)
     np.testing.assert_allclose(draw.pressure.press_abs_pa, win.pressure.press_abs_pa, atol=5.0)  # 0.5 mm
+
+
+def test_lead_seconds_is_five_of_the_slowest_actuator_time_constants():
+    """asr4's axial-loss filter f1x has the factor s^2 + 9.88 s + 1 (seed 004 Table 1): its slow
+    root is (-9.88 + sqrt(9.88^2 - 4)) / 2 = -0.10228 rad/s, tau = 9.778 s, so 48.89 s of lead."""
+    assert core.lead_seconds(V) == pytest.approx(5 * 2 / (9.88 - np.sqrt(9.88 ** 2 - 4)), abs=1e-6)
+    assert core.lead_seconds(V) == pytest.approx(48.889, abs=1e-3)
+    off = V.with_effects(azimuth_transient=False)  # then the motor and servo lags set it (>= LEAD_S)
+    assert core.lead_seconds(off) == pytest.approx(max(core.LEAD_S, 5 * max(V.thruster.motor_time_constant,
+                                                                             V.servo.time_constant)))
+
+
+@pytest.mark.slow
+def test_lead_in_brings_a_window_s_actuators_to_their_state_in_the_whole_flight(tmp_path_factory):
+    """A window's modelled acceleration, with its actuators run from the diagnosis's own lead-in,
+    is the one the whole flight's actuator run gives (which starts at rest, as the plant does;
+    test_null_draw_from_the_true_state_is_the_plant checks that run against the plant). A 2 s
+    lead-in left asr4's slow f1x state short: under a joystick pilot a steady heave acceleration
+    of about 0.01 m/s^2 (0.1 N), which every window showed as a force (README 'Diagnose')."""
+    path = tmp_path_factory.mktemp("rec") / "lead.tlog"
+    prove.record_session(V, path, 45.0, seed=4, mocap=False, noise=False, pilot="joystick")
+    rec = read_recording(path)
+    ev_full = Evaluator(rec, V)
+    full, p = ev_full.traj0, model.pack_params(V)
+    A = ev_full.actuators(full, p, ev_full.base)
+    win = rec.between(32.0, 42.0)
+    gaps = {}
+    for label, taus in (("old", 0.0), ("now", core.LEAD_TAUS)):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(core, "LEAD_TAUS", taus)
+            ev = Evaluator(win, V, core._lead_in(rec, full, win, V))
+        act = ev.actuators(ev.traj0, p, ev.base)
+        i = int(np.searchsorted(full.time_s, ev.traj0.time_s[0] - 1e-9))
+        n = len(ev.traj0.time_s)
+        gap = replay.model_acceleration(ev.traj0, act, p) - replay.model_acceleration(ev.traj0, A[i:i + n], p)
+        gaps[label] = float(abs(gap[:, 2].mean()))
+    assert gaps["old"] > 3e-3  # the test sees the fault it guards against
+    assert gaps["now"] < 1e-4
 
 
 def test_calibration_recovers_the_scale_of_chi_square_draws():
