@@ -119,6 +119,8 @@ def test_the_shipped_example_specs_parse(tmp_path):
     ("kind = 'prove'\n[prove]\nsplit = 'test'\n", "prove.split: expected one of dev, eval, got 'test'"),
     ("kind = 'diagnose'\n[diagnose]\nrecordings = 'none/*.tlog'\n", "diagnose.recordings: expected a glob that matches at least one recording file"),
     ("kind = 'missions'\n[missions\n", "not valid TOML"),
+    (f"kind = 'missions'\nvehicle = '{REPO / 'onboard' / 'data' / 'bluerov2_heavy.toml'}'\n",
+     "vehicle: " + str(REPO / "onboard" / "data" / "bluerov2_heavy.toml") + ": bluerov2_heavy has fixed thrusters only"),
 ])
 def test_a_bad_spec_is_one_line_naming_file_and_key(tmp_path, capsys, text, says):
     spec = write_spec(tmp_path, text)
@@ -328,3 +330,20 @@ def test_a_prove_case_on_the_local_cluster_gives_the_benchmark_table(tmp_path, c
     assert {"dev_014.tlog", "dev_014.json", "dev_014.nominal.toml", "row.json"} <= files
     page = (tmp_path / "out" / "index.html").read_text()
     assert "controls: false findings" in page and "confusion" in page  # family_table with its intervals
+
+
+@pytest.mark.slow
+def test_jetloop_prove_runs_the_benchmark_on_the_campaign_engine(tmp_path, capsys):
+    """issue 18: `jetloop prove --split` on the campaign engine (--dask), resumable like a campaign."""
+    argv = ["prove", "--split", "dev", "--first", "15", "--cases", "1", "--dask", "--workers", "1", "--quiet",
+            "--out", str(tmp_path / "p")]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "1 cases (0 raised)" in out and "| sensors: ardusub | 1 |" in out  # ground.prove.family_table
+    fam = json.loads((tmp_path / "p" / "family.json").read_text())["cases"]
+    assert [c["index"] for c in fam] == [15] and "error" not in fam[0]
+    assert [r["status"] for r in read_table(tmp_path / "p")] == ["ok"]
+    started = read_table(tmp_path / "p")[0]["started_unix"]
+    assert main(argv) == 0  # again: resumed, nothing recomputed
+    assert "1 cases (0 raised)" in capsys.readouterr().out
+    assert read_table(tmp_path / "p")[0]["started_unix"] == started

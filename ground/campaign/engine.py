@@ -33,7 +33,7 @@ from pathlib import Path
 from .spec import Campaign, Task
 from .tasks import execute
 
-META_COLUMNS = ("task_id", "kind", "label", "status", "error", "wall_s", "worker", "host", "pid", "started_unix")
+META_COLUMNS = ("task_id", "kind", "label", "status", "error", "wall_s", "cpu_s", "worker", "host", "pid", "started_unix")
 LOST = "lost"
 
 
@@ -314,3 +314,35 @@ def _run_dask(todo: list[Task], scheduler: str | None, workers: int | None, prog
             if cluster is not None:
                 cluster.close()
     return mode
+
+
+# ------------------------------------------------------------------------------------------------
+# `jetloop prove --split ... --dask / --scheduler`: the benchmark's cases on this engine
+
+
+def run_prove_family(split: str, n: int, out, workers: int = 2, first: int = 0, scheduler: str | None = None,
+                     vehicle_path=None, quiet: bool = False) -> list[dict]:
+    """Cases first..first+n-1 of `split` as a prove campaign (resumable, results.parquet,
+    index.html in `out`); returns their rows in `ground.prove.run_family`'s form."""
+    from .spec import Task, _Problems, _vehicle
+
+    p = _Problems("jetloop prove")
+    text, _ = _vehicle(p, None if vehicle_path is None else str(Path(vehicle_path).resolve()), Path.cwd(), "--vehicle")
+    p.raise_if_any()
+    from ground.prove import family_case
+
+    tasks = tuple(Task("prove", family_case(split, i)[0].name, {"split": split, "index": i, "draws": None,
+                                                               "vehicle_toml": text})
+                  for i in range(first, first + n))
+    campaign = Campaign("prove", f"jetloop prove --split {split} --first {first} --cases {n}", tasks,
+                        {"split": split, "first": first, "cases": n})
+    outcome = run_campaign(campaign, out, scheduler=scheduler, workers=None if scheduler else workers, quiet=quiet)
+    return [family_row(r) for r in outcome.rows]
+
+
+def family_row(row: dict) -> dict:
+    """A prove campaign's row as ground.prove.family_table reads it ("error" only when it raised)."""
+    if row.get("status") == "ok":
+        return {k: v for k, v in row.items() if k != "error"}
+    return {**row, "case": row.get("case") or row.get("label"), "expect": row.get("expect") or [],
+            "error": row.get("error") or row.get("status")}

@@ -153,12 +153,9 @@ def _median(v):
 def _prove(rows: list[dict]) -> list[str]:
     from ground.prove import family_table
 
-    fam = []
-    for r in rows:
-        if r.get("status") != "ok":
-            fam.append({**r, "expect": r.get("expect") or [], "error": r.get("error") or r.get("status")})
-        else:
-            fam.append({k: v for k, v in r.items() if k != "error"})
+    from .engine import family_row
+
+    fam = [family_row(r) for r in rows]
     return ["<h2>The diagnosis benchmark</h2><p>ground.prove.family_table: rates with 95 % Wilson intervals "
             "by sensor set, pilot and effect; the confusion matrix of concealed primary effect against first "
             "finding.</p>", markdown_tables(family_table(fam))]

@@ -211,6 +211,14 @@ def parse_spec(text: str, path) -> Campaign:
     if not isinstance(sec, dict):
         p.add(kind, f"a [{kind}] table", sec)
         p.raise_if_any()
+    if kind in ("missions", "prove") and not p.lines:  # both fly the vehicle's jets (the loop, the pilot)
+        from onboard.vehicle import VehicleFileError, require_jets
+
+        try:
+            require_jets(vehicle, f"campaign ({kind})")
+        except VehicleFileError as exc:
+            p.text(f"vehicle: {exc}")
+            p.raise_if_any()
     if kind == "missions":
         tasks, skipped = _missions(p, sec, seed, vehicle_text, vehicle), 0
     elif kind == "prove":

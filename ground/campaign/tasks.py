@@ -32,6 +32,7 @@ MAX_FILE_RETURNED = 512 * 1024 * 1024  # a task's files come back through the sc
 def execute(kind: str, inputs: dict) -> dict:
     """Run one task: {"row": figures and status, "files": {name: bytes}}. Never raises."""
     t0 = time.perf_counter()
+    c0 = time.process_time()  # this process's CPU, every thread: what the task costs whatever the load
     started = time.time()
     files: dict = {}
     try:
@@ -46,7 +47,7 @@ def execute(kind: str, inputs: dict) -> dict:
         tb = traceback.extract_tb(exc.__traceback__)
         where = f" (at {Path(tb[-1].filename).name}:{tb[-1].lineno})" if tb else ""
         row = {"status": "error", "error": f"{type(exc).__name__}: {exc}{where}"}
-    row.update(wall_s=round(time.perf_counter() - t0, 3), started_unix=round(started, 3),
+    row.update(wall_s=round(time.perf_counter() - t0, 3), cpu_s=round(time.process_time() - c0, 3), started_unix=round(started, 3),
                worker=_worker_name(), host=socket.gethostname(), pid=os.getpid())
     return {"row": row, "files": files}
 
