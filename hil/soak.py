@@ -554,7 +554,8 @@ def retime(vehicle: Vehicle, tlog: Path, times_s, say=None) -> dict:
     wall0 = time.perf_counter()
     if say:
         say(f"re-timing {len(want)} overrun steps: replaying {tlog} through a fresh onboard loop")
-    loop.run(idle_exit_s=0.5)
+    loop.run(idle_exit_s=5.0)  # wall time with nothing read: a replay ends at its last packet, but a
+    # loaded machine (load average 8-10 on 2 cores) stalled the replay 0.5 s mid-run and cut it short
     replay.close()
     if say:
         say(f"replayed {loop.stats.steps} steps in {time.perf_counter() - wall0:.0f} s")
