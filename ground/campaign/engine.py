@@ -181,6 +181,7 @@ class Progress:
     def finished(self, row: dict) -> None:
         self.done += 1
         self.failed += row.get("status") != "ok"
+        self.running = max(self.running - 1, 0)
         if self.bar is not None:
             self.bar.update(self.bar_task, completed=self.done, text=self.text())
         elif not self.quiet:
