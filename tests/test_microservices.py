@@ -344,3 +344,16 @@ def test_a_set_that_cannot_be_saved_flies_and_says_it_was_not_saved(tmp_path):
         assert s.loop.controller.gains.attitude_bandwidth_rad_s == pytest.approx(4.0)
     finally:
         s.close()
+
+
+@pytest.mark.slow  # a jetloop process loads the compiled model
+def test_jetloop_onboard_with_a_bad_parameter_file_exits_2_with_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    bad = tmp_path / "v.params"
+    bad.write_text("CTL_DEPTH_BW 99\n")
+    r = subprocess.run([sys.executable, "-m", "ground.cli", "onboard", "--link", "udpin:127.0.0.1:0",
+                        "--params", str(bad), "--duration", "1"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r
+    assert r.stderr.strip().splitlines() == [f"jetloop onboard: {bad}:1: CTL_DEPTH_BW 99 rad/s: expected 0.1-6 rad/s"]
