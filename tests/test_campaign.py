@@ -347,3 +347,16 @@ def test_jetloop_prove_runs_the_benchmark_on_the_campaign_engine(tmp_path, capsy
     assert main(argv) == 0  # again: resumed, nothing recomputed
     assert "1 cases (0 raised)" in capsys.readouterr().out
     assert read_table(tmp_path / "p")[0]["started_unix"] == started
+
+
+@pytest.mark.slow
+def test_a_loopback_flight_takes_link_faults(tmp_path):
+    """flight = "loopback": jetloop demo's parties over UDP (threads) in the task, so the link faults of
+    hil.faults apply; the onboard monitor reports the loss, the ground's telemetry is a file too."""
+    spec = write_spec(tmp_path, 'kind = "missions"\n[missions]\nmission = "hold"\nduration_s = 8\nseeds = [0]\n'
+                                'flight = "loopback"\n[missions.faults]\n"loss" = { loss = "0.1@2:6" }\n')
+    outcome = run_campaign(load_spec(spec), tmp_path / "out", workers=0, quiet=True)
+    (row,) = outcome.rows
+    assert row["status"] == "ok" and row["lockstep_periods"] == 800
+    assert [d["flag"] for d in row["detections"]] == ["LINK_LOSS"] and row["detections"][0]["detected_s"] is not None
+    assert {"mission.tlog", "telemetry.tlog", "summary.json"} <= set(row["files"])

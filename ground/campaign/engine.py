@@ -279,7 +279,7 @@ def _run_dask(todo: list[Task], scheduler: str | None, workers: int | None, prog
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                    silence_logs=logging.ERROR)
             client = Client(cluster)
-            mode = f"local cluster of {n} worker processes"
+            mode = f"local cluster of {n} worker process{'es' if n != 1 else ''}"
         else:
             client = Client(scheduler, timeout="20s")
             info = client.scheduler_info()
