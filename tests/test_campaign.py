@@ -313,6 +313,10 @@ def test_a_task_that_raises_is_a_row_and_diagnose_finds_recurrences(tmp_path, ca
     good = [r for r in rows.values() if r["status"] == "ok"]
     assert len(good) == 2 and all(r["error"] is None and r["recording_s"] > 6 for r in good)
     assert all((tmp_path / "out" / "tasks" / r["task_id"] / "report.json").exists() for r in good)
+    # one worker: the largest recording (the costliest task) first, the small damaged file last
+    by_start = sorted(rows.values(), key=lambda r: r["started_unix"])
+    sizes = [(tmp_path / r["label"]).stat().st_size for r in by_start]
+    assert sizes == sorted(sizes, reverse=True) and by_start[-1]["label"] == "rec/damaged.tlog"
     page = (tmp_path / "out" / "index.html").read_text()
     assert "Findings that recur" in page and "Tasks that raised" in page and "RecordingError" in page
 

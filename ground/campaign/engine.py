@@ -286,8 +286,12 @@ def _run_dask(todo: list[Task], scheduler: str | None, workers: int | None, prog
             mode = f"scheduler {scheduler} ({len(info.get('workers', {}))} workers)"
         try:
             by_key = {}
-            for t in todo:
-                fut = client.submit(execute, t.kind, t.inputs, key=f"jetloop-{t.kind}-{t.id}", pure=False)
+            # the costliest first (submitted first, at a higher priority), so a long case never starts
+            # last and holds up the end; equal costs in the spec's order
+            order = sorted(todo, key=lambda t: -t.cost)
+            for r, t in enumerate(order):
+                fut = client.submit(execute, t.kind, t.inputs, key=f"jetloop-{t.kind}-{t.id}", pure=False,
+                                    priority=len(order) - r)
                 by_key[fut.key] = (fut, t)
             pending = {f for f, _ in by_key.values()}
             while pending:
@@ -332,9 +336,9 @@ def run_prove_family(split: str, n: int, out, workers: int = 2, first: int = 0, 
     p.raise_if_any()
     from ground.prove import family_case
 
-    tasks = tuple(Task("prove", family_case(split, i)[0].name, {"split": split, "index": i, "draws": None,
-                                                               "vehicle_toml": text})
-                  for i in range(first, first + n))
+    cases = [(i, family_case(split, i)) for i in range(first, first + n)]
+    tasks = tuple(Task("prove", c[0].name, {"split": split, "index": i, "draws": None, "vehicle_toml": text},
+                       cost=c[1].duration_s) for i, c in cases)
     campaign = Campaign("prove", f"jetloop prove --split {split} --first {first} --cases {n}", tasks,
                         {"split": split, "first": first, "cases": n})
     outcome = run_campaign(campaign, out, scheduler=scheduler, workers=None if scheduler else workers, quiet=quiet)

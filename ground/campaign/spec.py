@@ -76,6 +76,7 @@ class Task:
     label: str
     inputs: dict
     id: str = ""
+    cost: float = 1.0  # a guess of its relative cost (not in the id): the longest go first on a cluster
 
     def __post_init__(self):
         if not self.id:
@@ -387,7 +388,7 @@ def _missions(p: _Problems, sec: dict, seed: int, vehicle_text, vehicle) -> list
                               "draw": di if dv is not None else -1, "vehicle_values": dv or {},
                               "vehicle_toml": vehicle_text}
                     label = f"{alloc} / {fname} / draw {inputs['draw']} / seed {s}"
-                    tasks.append(Task("missions", label, inputs))
+                    tasks.append(Task("missions", label, inputs, cost=duration or 32.0))
     return tasks
 
 
@@ -437,7 +438,7 @@ def _prove(p: _Problems, sec: dict, vehicle_text):
             skipped += 1
             continue
         tasks.append(Task("prove", case.name, {"split": split, "index": i, "draws": draws,
-                                               "vehicle_toml": vehicle_text}))
+                                               "vehicle_toml": vehicle_text}, cost=flight.duration_s))
     return tasks, skipped
 
 
@@ -470,7 +471,7 @@ def _diagnose(p: _Problems, sec: dict, base: Path, vehicle_text, vehicle) -> lis
             continue
         seen.add(digest)
         tasks.append(Task("diagnose", name, {"recording": str(path.resolve()), "sha256": digest, "draws": draws,
-                                             "vehicle_toml": vehicle_text}))
+                                             "vehicle_toml": vehicle_text}, cost=float(path.stat().st_size)))
     return tasks
 
 
