@@ -135,6 +135,17 @@ def test_a_bad_spec_is_one_line_naming_file_and_key(tmp_path, capsys, text, says
     assert not (tmp_path / "out" / "results.parquet").exists()
 
 
+def test_an_absurd_vehicle_file_in_a_spec_is_one_line(tmp_path, capsys, reference_text):
+    bad = tmp_path / "bad.toml"
+    assert "mass = 6.5 " in reference_text
+    bad.write_text(reference_text.replace("mass = 6.5 ", "mass = 6500.0 ", 1))
+    spec = write_spec(tmp_path, "kind = 'missions'\nvehicle = 'bad.toml'\n")
+    assert main(["campaign", str(spec), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert f"{spec}: invalid campaign spec: vehicle: {bad}: invalid vehicle file: body.mass" in err, err
+
+
 def test_bad_command_lines_are_one_line(tmp_path, capsys):
     spec = write_spec(tmp_path, SMALL)
     for argv, says in ((["--workers", "-1"], "--workers -1: expected"),

@@ -257,8 +257,11 @@ def _vehicle(p: _Problems, value, base: Path, key: str):
         return text, parse_vehicle(text, source=str(vpath))
     except (OSError, UnicodeDecodeError) as exc:
         p.add(key, "the path of a readable vehicle TOML file", f"{value} ({getattr(exc, 'strerror', None) or exc})")
-    except VehicleFileError as exc:
-        p.text(f"{key}: {str(exc).splitlines()[0]}")
+    except VehicleFileError as exc:  # one problem one line; several: the vehicle's header, then each
+        lines = str(exc).splitlines()
+        p.text(f"{key}: {lines[0]}")
+        for line in lines[1:]:
+            p.text(f"{key}: {line.strip()}")
     return None, load_vehicle(None)
 
 
