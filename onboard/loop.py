@@ -140,29 +140,66 @@ class StampGuard:
     in a replayed log) and the guard re-anchors on it. So one stamp far in the future, corrupt or
     hostile, never moves the clock or the IMU ordering on (issue 15: a lone HIGHRES_IMU stamped
     1e12 us made every later real sample "out of order" and tripped the failsafe for good), and
-    a real jump costs `confirm` samples. `admit(t)` -> "ok", "held" or "rebased"."""
+    a real jump costs `confirm` samples. `admit(t, now=None)` -> "ok", "held" or "rebased".
 
-    def __init__(self, max_skew_s: float = 1.0, confirm: int = 3):
+    The rule against stamps a little ahead (issue 15, second pass):
+    - the skew must be below the IMU failsafe's timeout (LoopConfig checks it): a stamp accepted
+      ahead drops the real samples before it as out of order, and that may not last a timeout;
+    - in real time (`now`: the loop's own clock) the stream may not run ahead of that clock: its
+      offset (stamp - now) is tracked, following drift at most `rate_tolerance` (1 %, a crystal
+      drifts 1e-4) of the time passed, and a stamp more than `max_skew_s` ahead of the tracked
+      offset is held; held stamps confirm a new time base only when they agree on one offset
+      (not merely with each other), so a walk of stamps each a little ahead of the last gets
+      one step in and no further (each step below the skew; a walk slow enough to agree with
+      itself over `confirm` samples re-anchors, and every re-anchor is counted, time_rebases);
+    - in lock-step (`now` None) the stream is the clock, so only the skew bounds a step.
+    """
+
+    def __init__(self, max_skew_s: float = 1.0, confirm: int = 3, rate_tolerance: float = 0.01):
         self.max_skew_s = float(max_skew_s)
         self.confirm = int(confirm)
+        self.rate_tolerance = float(rate_tolerance)
         self.newest = -math.inf
-        self._candidate = None  # (first, newest, count) of stamps that disagree with `newest`
+        self._candidate = None  # (first, newest, count, offset of the first) of stamps that disagree with `newest`
+        self._offset = None  # (stamp - now, now) in real time: the stream's offset from the loop's clock, and when
         self.held = 0  # stamps held back (never believed)
         self.rebases = 0
 
-    def admit(self, t: float) -> str:
-        if self.newest == -math.inf or abs(t - self.newest) <= self.max_skew_s:
+    def _ahead(self, t: float, now: float | None) -> bool:
+        if now is None or self._offset is None:
+            return False
+        off, at = self._offset
+        return (t - now) - off > self.max_skew_s + self.rate_tolerance * max(0.0, now - at)
+
+    def _track(self, t: float, now: float | None, reset: bool = False) -> None:
+        if now is None:
+            return
+        if self._offset is None or reset:
+            self._offset = (t - now, now)
+            return
+        off, at = self._offset
+        step = self.rate_tolerance * max(0.0, now - at)  # the offset follows drift, never a jump
+        self._offset = (min(max(t - now, off - step), off + step), now)
+
+    def admit(self, t: float, now: float | None = None) -> str:
+        if self.newest == -math.inf or (abs(t - self.newest) <= self.max_skew_s and not self._ahead(t, now)):
             self._candidate = None  # the stream goes on where it was: a held stamp was a lone one
             self.newest = max(self.newest, t)
+            self._track(t, now)
             return "ok"
         c = self._candidate
-        if c is not None and abs(t - c[1]) <= self.max_skew_s:
-            c = (c[0], max(c[1], t), c[2] + 1)
+        off = None if now is None else t - now
+        if c is None:
+            agrees = False
+        elif now is None or c[3] is None:
+            agrees = abs(t - c[1]) <= self.max_skew_s
         else:
-            c = (t, t, 1)
+            agrees = abs(off - c[3]) <= self.max_skew_s  # one time base: one offset from the loop's clock
+        c = (c[0], max(c[1], t), c[2] + 1, c[3]) if agrees else (t, t, 1, off)
         if c[2] >= self.confirm:
             self._candidate = None
             self.newest = c[1]
+            self._track(t, now, reset=True)
             self.rebases += 1
             return "rebased"
         self._candidate = c
@@ -274,7 +311,7 @@ class LoopConfig:
     fault_monitor: bool = True  # onboard.monitor: detect, report and reconfigure around faults
     ground_systems: tuple = GCS_SYSTEMS  # source systems whose commands/setpoints count (others: foreign)
     autopilot: tuple | None = None  # (system, component 0=any) whose sensor data counts; None: first seen on the main link
-    max_stamp_skew_s: float = 1.0  # a sensor stamp further than this from the newest is held (StampGuard)
+    max_stamp_skew_s: float = 0.2  # a sensor stamp further than this from the newest is held (StampGuard); < imu_timeout_s
     identity: str = "auto"  # to the ground: "vehicle" (component 1), "companion" (191), "auto" (onboard.microservices.Identity)
     parameter_file: str | None = None  # where MAVLink parameter sets persist and are read at start (onboard.params)
 
@@ -291,6 +328,9 @@ class LoopConfig:
             raise ValueError(f"mode_at_start: expected one of {sorted(MODES)}, got {self.mode_at_start!r}")
         if not (math.isfinite(self.max_stamp_skew_s) and self.max_stamp_skew_s > 0):
             raise ValueError(f"max_stamp_skew_s: expected a time > 0 s, got {self.max_stamp_skew_s!r}")
+        if not self.max_stamp_skew_s < self.imu_timeout_s:  # a stamp accepted ahead must not starve the failsafe
+            raise ValueError(f"max_stamp_skew_s {self.max_stamp_skew_s:g} s: expected below imu_timeout_s "
+                             f"{self.imu_timeout_s:g} s (real samples behind a stamp accepted ahead are dropped)")
 
 
 PHASES = ("estimate", "control", "allocate", "checks", "monitor")  # of a control step, in order (Overrun)
@@ -681,7 +721,7 @@ class OnboardLoop:
 
     def _stamp_ok(self, t: float) -> bool:
         """Whether a sensor sample stamped t may count (StampGuard); follows a confirmed new time base."""
-        verdict = self._stamps.admit(t)
+        verdict = self._stamps.admit(t, None if self.clock.lockstep else self.clock.now())
         if verdict == "held":
             self.stats.stamps_held += 1
             return False

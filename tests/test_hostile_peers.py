@@ -406,3 +406,92 @@ def test_the_adversarial_run_against_the_jetloop_onboard_process(tmp_path):
     line = next(x for x in out.splitlines() if x.startswith(f"jetloop onboard: ground udpin:127.0.0.1:{g}:"))
     assert "foreign_datagrams 1" in line, line
     assert "failsafes 0" in next(x for x in out.splitlines() if "steps, step median" in x)
+
+
+# -- the second pass (issue 15): stamps inside the old 1 s skew, and walks of them -----------------------
+
+def test_a_stamp_half_a_second_ahead_is_held_and_never_trips_the_imu_failsafe(robot):
+    """0.3-1 s ahead was inside the 1 s skew the guard allowed and beyond the 0.3 s IMU timeout:
+    in lock-step the clock jumped there, every real sample before it was out of order, and the
+    failsafe tripped. The skew is now below the timeout (0.2 s of 0.3 s), so such a stamp is held."""
+    r = _armed(robot)
+    steps = r.loop.stats.steps
+    r.plant.send(imu(r.t + 0.6))
+    r.pump()
+    _healthy_after(r, steps)
+    assert r.loop.stats.stamps_held == 1 and r.loop.stats.time_rebases == 0
+
+
+def test_the_stamp_skew_must_be_below_the_imu_timeout():
+    with pytest.raises(ValueError, match=r"max_stamp_skew_s 0.3 s: expected below imu_timeout_s 0.3 s"):
+        LoopConfig(max_stamp_skew_s=0.3)
+    assert LoopConfig().max_stamp_skew_s < LoopConfig().imu_timeout_s
+
+
+def test_stamp_guard_in_real_time_holds_a_stream_that_runs_ahead_of_the_loops_clock():
+    """Hand-computed: the stream may not run ahead of the loop's own clock (plus the skew, plus
+    1 % drift): a walk of stamps each 0.15 s ahead of the last, within the skew of the newest,
+    gets one step in and no further, and never re-anchors, since its samples do not agree on one
+    offset from the loop's clock."""
+    g = StampGuard(max_skew_s=0.2, confirm=3)
+    assert [g.admit(t, now=t - 5.0) for t in (10.0, 10.01, 10.02)] == ["ok"] * 3  # offset 10 - 5 = 5 s
+    # at 5.03 s: 10.17 is 0.14 s ahead of the offset (ok); 10.32 is 0.29 s (held); the held ones
+    # agree with each other within the skew but not on one offset (5.29, 5.44 | 5.59, 5.74 | ...)
+    walk = [g.admit(10.02 + 0.15 * k, now=5.03) for k in range(1, 8)]
+    assert walk[0] == "ok" and walk[1:] == ["held"] * 6 and g.rebases == 0
+    assert g.newest == pytest.approx(10.17)
+    assert [g.admit(t, now=t - 5.0) for t in (10.05, 10.06)] == ["ok", "ok"]  # the real stream goes on
+    # a real jump (an autopilot reboot) is three samples agreeing on a new offset: followed
+    assert [g.admit(t, now=t + 95.0) for t in (0.01, 0.02, 0.03)] == ["held", "held", "rebased"]
+    assert g.admit(0.5, now=95.04) == "held"  # ahead of the new offset (-95 s) by 0.46 s
+    assert g.admit(0.05, now=95.05) == "ok"
+
+
+def test_in_real_time_a_walk_of_stamps_neither_moves_the_ordering_nor_trips_the_failsafe():
+    """The adversarial run's walk, against the real-time loop over UDP: the autopilot's stream at
+    100 Hz on its own boot time, then six samples from its address each 0.15 s ahead of the one
+    before (every one within the old 1 s skew of the newest). Before, the IMU ordering walked
+    0.9 s ahead, every real sample after was dropped as out of order and the failsafe tripped."""
+    import time
+
+    from onboard.loop import WallClock
+
+    r = Robot.__new__(Robot)
+    r.plant = Link("udpin:127.0.0.1:0", source_system=1, source_component=1)
+    r.main = Link(f"udpout:127.0.0.1:{r.plant.local_address[1]}", 1, 191)
+    r.ground = Link("udpin:127.0.0.1:0", 1, 191)
+    r.station = Link(f"udpout:127.0.0.1:{r.ground.local_address[1]}", 255, 190)
+    r.loop = OnboardLoop(V, r.main, WallClock(), LoopConfig(), ground=r.ground)
+    try:
+        r.loop.start()
+        assert r.plant.recv(2.0) is not None
+        r.station.send(codec.heartbeat())
+        t0 = time.monotonic() - 7.0  # the autopilot booted 7 s before
+
+        def fly(seconds, walk=()):
+            end = time.monotonic() + seconds
+            next_frame = time.monotonic()
+            walk = list(walk)
+            while time.monotonic() < end:
+                if time.monotonic() >= next_frame:
+                    t = time.monotonic() - t0
+                    with r.plant.batch():
+                        for m in frame(t):
+                            r.plant.send(m)
+                        for k in range(len(walk)):
+                            r.plant.send(imu(t + walk.pop(0)))
+                    next_frame += 0.01
+                r.loop.poll()
+
+        fly(1.0)
+        r.station.send(arm_command(True))
+        fly(0.5)
+        assert r.loop.armed and not r.loop.failsafe_active
+        before = r.loop.stats.ignored_imu
+        fly(1.0, walk=[0.15 * k for k in range(1, 7)])
+        assert not r.loop.failsafe_active and r.loop.stats.failsafe_entries == 0, r.loop.fs_state
+        assert r.loop.stats.time_rebases == 0
+        assert r.loop._last_imu_stamp <= time.monotonic() - t0 + 0.01
+        assert r.loop.stats.ignored_imu - before <= 25  # the real samples behind the one step the walk got in
+    finally:
+        r.close()
