@@ -495,3 +495,27 @@ def test_in_real_time_a_walk_of_stamps_neither_moves_the_ordering_nor_trips_the_
         assert r.loop.stats.ignored_imu - before <= 25  # the real samples behind the one step the walk got in
     finally:
         r.close()
+
+
+@pytest.mark.parametrize("stray", [
+    mavlink.MAVLink_system_time_message(0, 5_000_000),  # a companion's clock message: no sensor data
+    hostile_imu(5_000_000),  # sensor data, but from a companion's component
+], ids=["SYSTEM_TIME", "IMU from 191"])
+def test_a_stray_message_from_a_companion_does_not_become_the_autopilot(stray):
+    """The first sensor message on the main link elected its sender for good: a companion's
+    SYSTEM_TIME (1:191) ahead of the autopilot's first sample made the companion the autopilot and
+    every real sample was refused. Only sensor data (IMU, pressure, attitude) from an autopilot's
+    component (MAV_COMP_ID_AUTOPILOT1) elects; what comes before from anyone else is refused."""
+    r = Robot()
+    try:
+        r.plant.write_raw(wire(stray, 1, comp=191))
+        r.pump()
+        assert r.loop.gate.autopilot is None and r.loop.stats.security.sensors_refused == 1
+        assert r.loop.clock.now() == float("-inf")
+        _armed(r)
+        assert r.loop.gate.autopilot == (1, 1)
+        r.plant.write_raw(wire(stray, 1, comp=191))  # and after the election, refused as before
+        r.pump()
+        assert r.loop.stats.security.sensors_refused == 2
+    finally:
+        r.close()
