@@ -311,9 +311,16 @@ def run_closed_loop(
         if progress:
             progress(f"flying {duration_s:.0f} s of mission in lock-step")
         n = int(round(duration_s / frame_s))
+        supervise = dict(zip(("recorder", "onboard"), parties))
+        next_check = time.monotonic() + PARTY_CHECK_S
         try:
             while ep.k < n and not (halt is not None and halt()):
                 ep.step()
+                if time.monotonic() >= next_check:  # a party that needs nothing from the plant (the
+                    next_check = time.monotonic() + PARTY_CHECK_S  # recorder) may die unseen otherwise
+                    why = _party_failure(supervise, results, got)
+                    if why:
+                        raise EndpointError(why)
                 if progress and ep.k % int(round(5 / frame_s)) == 0:
                     progress(f"  t = {ep.time_s:5.1f} s")
         except EndpointError as exc:
@@ -343,6 +350,9 @@ def run_closed_loop(
         extra["detections"] = detections(faults, onboard.get("fault_events", []))
     return ClosedLoopResult(ep.truth, ep.commands, endpoint, onboard, got.get("recorder", {}),
                             wall, tlog_path, telemetry_path, extra)
+
+
+PARTY_CHECK_S = 0.5  # wall time between checks of the parties in flight
 
 
 def _party_failure(parties: dict, results, got: dict) -> str | None:

@@ -41,6 +41,24 @@ def test_an_onboard_child_killed_at_start_fails_the_run_at_once():
     assert time.monotonic() - t0 < 30.0
 
 
+def test_a_recorder_child_killed_in_flight_fails_the_run_at_once():
+    """The recorder is supervised as the onboard child is (issue 15, second pass): killed in flight,
+    the run used to fly on to the end and write a summary with no telemetry recording behind it.
+    Now the flight stops within a second of wall time with the recorder's exit named."""
+    pids, periods = {}, []
+
+    def kill_at(ep):
+        periods.append(ep.k)
+        if ep.k == 100:
+            os.kill(pids["recorder"], signal.SIGKILL)
+
+    with pytest.raises(EndpointError, match=r"the recorder process ended before the flight did \(killed by signal 9\)"):
+        run_closed_loop(V, hold_mission(120.0).setpoints(), 120.0, start_timeout_s=60.0,
+                        on_start=pids.update, on_period=kill_at)
+    assert 100 <= periods[-1] < 12_000 - 1  # stopped before the end of the mission
+    assert _gone(pids["recorder"]) and _gone(pids["onboard"])
+
+
 def _gone(pid: int) -> bool:
     """The process no longer runs (absent, or a zombie waiting for whoever adopted it)."""
     try:
