@@ -34,8 +34,10 @@ from collections import deque
 from ground.station import Snapshot
 
 SAMPLE_PERIOD_S = 0.1  # one plot row every 100 ms (telemetry comes at 10 Hz)
-PUSH_PERIOD_MS = 250  # the page is sent new rows 4 times a second, as the terminal view redraws
-WINDOW_S = 120.0  # the plots' history
+PUSH_PERIOD_MS = 500  # the page is sent new rows twice a second (a software-rendered browser on a busy
+# 2-core machine kept up with 4 pushes a second of 120 s windows only barely: its clicks waited 120 s)
+WINDOW_S = 60.0  # the plots' history: one minute
+EVENTS_SHOWN = 15  # the event log's last lines on the page
 ADDRESS = "127.0.0.1"
 DEFAULT_PORT = 8080
 
@@ -175,7 +177,7 @@ class Dashboard:
                 now = time.monotonic()
                 if now >= next_sample:
                     next_sample = now + self.sample_period_s
-                    snap = self.session.snapshot()
+                    snap = self.session.station.snapshot(self.session.clock(), n_events=EVENTS_SHOWN)
                     self.latest = snap
                     self.history.append(row(snap, self.session.clock(), self.n_units))
             except Exception as exc:  # the operator's page outlives a bad moment; said once a second at most
@@ -266,7 +268,9 @@ class _Page:
         self.np = np
         self.count = 0
         names = dash.history.names
-        self.source = ColumnDataSource({n: np.zeros(0) for n in names}, name="telemetry")
+        # "zero": the baseline every plot draws, so a range stays finite while its values are all gaps
+        # (no link yet, or a long loss): BokehJS re-renders without end when a range cannot be set
+        self.source = ColumnDataSource({n: np.zeros(0) for n in names + ("zero",)}, name="telemetry")
         k = dash.n_units
         figs = [
             self._figure("attitude (deg)", [("roll", "roll"), ("pitch", "pitch"), ("yaw", "yaw"),
@@ -277,7 +281,7 @@ class _Page:
             self._figure("jet thrust (N)", [(f"thrust{i}", f"jet {i + 1}") for i in range(k)]),
             self._figure("joints (deg): azimuth solid, elevation dashed",
                          [(f"az{i}", f"az {i + 1}", "solid", PALETTE[i % 8]) for i in range(k)]
-                         + [(f"el{i}", f"el {i + 1}", "dashed", PALETTE[i % 8]) for i in range(k)]),
+                         + [(f"el{i}", f"el {i + 1}", "dashed", PALETTE[i % 8]) for i in range(k)], legend_columns=2),
             self._figure("allocation residual", [("residual", "|demand - achieved|"),
                                                  ("alloc_err", "weighted error")]),
             self._figure("loop timing (ms)", [("step_ms", "control step"), ("step_p99", "step p99"),
@@ -302,19 +306,21 @@ class _Page:
 
         buttons = [button("Arm", "arm", "cmd-arm", "danger"), button("Disarm", "disarm", "cmd-disarm", "success")]
         buttons += [button(m.replace("_", " "), f"mode {m}", f"mode-{m}") for m in MODES]
-        depth = TextInput(value="0.5", title="depth (m)", width=70, name="in-depth")
-        yaw = TextInput(value="0", title="yaw (deg)", width=70, name="in-yaw")
+        depth = TextInput(value="0.5", value_input="0.5", title="depth (m)", width=70, name="in-depth")
+        yaw = TextInput(value="0", value_input="0", title="yaw (deg)", width=70, name="in-yaw")
         go_depth = Button(label="Set depth/yaw", name="cmd-depth", width=110)
-        go_depth.on_click(lambda: self.send(f"depth {depth.value} yaw {yaw.value}"))
-        surge = TextInput(value="0", title="u (m/s)", width=70, name="in-u")
-        sway = TextInput(value="0", title="v (m/s)", width=70, name="in-v")
+        typed = lambda box: box.value_input  # noqa: E731 - what the box shows, Enter pressed or not
+        go_depth.on_click(lambda: self.send(f"depth {typed(depth)} yaw {typed(yaw)}"))
+        surge = TextInput(value="0", value_input="0", title="u (m/s)", width=70, name="in-u")
+        sway = TextInput(value="0", value_input="0", title="v (m/s)", width=70, name="in-v")
         go_vel = Button(label="Set velocity", name="cmd-velocity", width=100)
-        go_vel.on_click(lambda: self.send(f"velocity {surge.value} {sway.value}"))
+        go_vel.on_click(lambda: self.send(f"velocity {typed(surge)} {typed(sway)}"))
         from ground.commands import COMMAND_HELP
 
-        line = TextInput(value="", title=f"command: {COMMAND_HELP}", width=420, name="in-command")
+        line = TextInput(value="", value_input="", title="command line (as jetloop ground --cmd)", width=420,
+                         placeholder=COMMAND_HELP, name="in-command")
         go_line = Button(label="Send", name="cmd-send", width=70)
-        go_line.on_click(lambda: self.send(line.value))
+        go_line.on_click(lambda: self.send(typed(line)))
         head = Div(text="<b style='font-size:150%'>jetloop ground</b>", width=170)
         controls = column(
             brow(*buttons),
@@ -326,11 +332,12 @@ class _Page:
                              brow(self.warnings, self.events, sizing_mode="stretch_width"), grid,
                              sizing_mode="stretch_width")
 
-    def _figure(self, title: str, lines, flip: bool = False):
+    def _figure(self, title: str, lines, flip: bool = False, legend_columns: int = 1):
         from bokeh.plotting import figure
 
         p = figure(title=title, x_axis_type="datetime", height=230, sizing_mode="stretch_width",
                    tools="pan,xwheel_zoom,box_zoom,reset,save", name=title)
+        p.line("t_ms", "zero", source=self.source, color="#bbbbbb", line_width=1)  # the zero (surface, level) line
         for i, spec in enumerate(lines):
             col, label = spec[0], spec[1]
             dash = spec[2] if len(spec) > 2 else "solid"
@@ -344,6 +351,7 @@ class _Page:
         p.legend.background_fill_alpha = 0.6
         p.legend.spacing = 0
         p.legend.padding = 2
+        p.legend.ncols = legend_columns
         p.xaxis.axis_label = "time (UTC)"
         return p
 
@@ -381,8 +389,9 @@ class _Page:
         count, new = self.dash.history.since(self.count)
         if count > self.count and new["t_ms"]:
             np = self.np
-            self.source.stream({k: np.asarray(v, dtype=float) for k, v in new.items()},
-                               rollover=self.dash.history.maxlen)
+            cols = {k: np.asarray(v, dtype=float) for k, v in new.items()}
+            cols["zero"] = np.zeros(len(cols["t_ms"]))
+            self.source.stream(cols, rollover=self.dash.history.maxlen)
         self.count = count
         s = self.dash.latest
         status = _status_html(s)

@@ -19,10 +19,12 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
+
+if __name__ == "__main__":  # run as a script (the README's screenshot): the package from this checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ground.station import Station
 from ground.web import FLAG_HEIGHT, FLAGS, History, columns, parse_port, row, WebError
@@ -178,20 +180,31 @@ def _browser():
     return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
 
 
-# JavaScript run in the page: the Bokeh document's models are what the plots draw
-JS_SOURCE = """
+# JavaScript run in the page: the Bokeh document's models are what the plots draw. A column's
+# summary: [rows, finite values, min, max, last finite value, gaps at the end]
+JS_SUMMARY = """
 const doc = window.Bokeh && Bokeh.documents && Bokeh.documents[0];
 const src = doc && doc.get_model_by_name('telemetry');
 if (!src) return null;
 const out = {};
-for (const k of arguments[0]) out[k] = Array.from(src.data[k] || [], x => Number.isFinite(x) ? x : null);
+for (const k of arguments[0]) {
+  const a = Array.from(src.data[k] || []);
+  const f = a.filter(Number.isFinite);
+  let gaps = 0;
+  while (gaps < a.length && !Number.isFinite(a[a.length - 1 - gaps])) gaps++;
+  out[k] = [a.length, f.length, f.length ? Math.min(...f) : null, f.length ? Math.max(...f) : null,
+            f.length ? f[f.length - 1] : null, gaps];
+}
 return out;"""
+JS_ANY = ("const a = Bokeh.documents[0].get_model_by_name('telemetry').data[arguments[0]];"
+          "return Array.from(a).some(x => Math.abs(x - arguments[1]) < 1e-6);")
 JS_TEXT = "const m = Bokeh.documents[0].get_model_by_name(arguments[0]); return m ? m.text : null;"
 JS_BUTTON = "return Bokeh.index.find_one(Bokeh.documents[0].get_model_by_name(arguments[0])).button_el;"
 JS_INPUT = "return Bokeh.index.find_one(Bokeh.documents[0].get_model_by_name(arguments[0])).input_el;"
 
 PANEL_COLUMNS = ("t_ms", "roll", "depth", "depth_sp", "u", "thrust0", "az0", "el0", "residual", "step_ms", "rate_hz",
                  "flag_link_up", "flag_armed")
+ROWS, FINITE, MIN, MAX, LAST, GAPS = range(6)
 
 
 def fly_and_watch(screenshot: Path, settle_s: float = 0.0) -> dict:
@@ -199,75 +212,83 @@ def fly_and_watch(screenshot: Path, settle_s: float = 0.0) -> dict:
     Returns what the page showed (the assertions are the test's)."""
     g, h, http = free_udp_port(), free_udp_port(), free_tcp_port()
     cli = [sys.executable, "-m", "ground.cli"]
-    popen = lambda args: subprocess.Popen(cli + args, cwd=ROOT, stdout=subprocess.PIPE,  # noqa: E731
-                                          stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True)
-    procs, driver, seen = {}, None, {}
+
+    def popen(args, nice=0):
+        return subprocess.Popen(cli + args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, text=True, preexec_fn=(lambda: os.nice(nice)) if nice else None)
+    procs, driver, seen = {}, None, {"timeline": []}
+    t0 = time.monotonic()
+    mark = lambda what: seen["timeline"].append((round(time.monotonic() - t0, 1), what))  # noqa: E731
     try:
         procs["ground"] = popen(["ground", "--web", "--port", str(http), "--link", f"udpin:127.0.0.1:{g}",
-                                 "--duration", "240"])
+                                 "--duration", "300"])
+        # lock-step flies as fast as the CPU allows: below the page and the dashboard under test, so
+        # on a busy machine the flight slows down rather than the page
         procs["hil"] = popen(["hil", "--link", f"udpin:127.0.0.1:{h}", "--lockstep", "--mission", "demo",
-                              "--duration", "240"])
+                              "--duration", "300"], nice=10)
         procs["onboard"] = popen(["onboard", "--link", f"udpout:127.0.0.1:{h}", "--lockstep",
-                                  "--ground", f"udpout:127.0.0.1:{g}"])
+                                  "--ground", f"udpout:127.0.0.1:{g}"], nice=10)
         driver = _browser()
-        url = f"http://127.0.0.1:{http}/"
+        mark("browser up")
 
-        def served():
+        def listening():  # a connection only: each page request builds a document on the server
+            if procs["ground"].poll() is not None:
+                pytest.fail("the dashboard ended: " + procs["ground"].stdout.read())
             try:
-                with urllib.request.urlopen(url, timeout=2) as r:
-                    return r.status == 200
+                socket.create_connection(("127.0.0.1", http), timeout=1).close()
+                return True
             except OSError:
-                return procs["ground"].poll() is not None and pytest.fail(
-                    "the dashboard ended: " + procs["ground"].stdout.read())
-        _until(served, 30, "the dashboard answering HTTP")
-        driver.get(url)
-        data = lambda: driver.execute_script(JS_SOURCE, PANEL_COLUMNS)  # noqa: E731
-        finite = lambda d, k: [x for x in d[k] if x is not None]  # noqa: E731
+                return False
+        _until(listening, 60, "the dashboard listening")
+        driver.get(f"http://127.0.0.1:{http}/")
+        mark("page loaded")
+        summary = lambda: driver.execute_script(JS_SUMMARY, PANEL_COLUMNS)  # noqa: E731
+        text = lambda name: driver.execute_script(JS_TEXT, name) or ""  # noqa: E731
         # the flight's telemetry reaches the plots' data source ...
-        first = _until(lambda: (d := data()) and len(finite(d, "thrust0")) >= 20 and d, 60,
-                       "20 rows of jet thrust in the page")
+        seen["first"] = _until(lambda: (d := summary()) and d["thrust0"][FINITE] >= 20 and d, 90,
+                               "20 rows of jet thrust in the page")
+        mark("telemetry in the page")
         time.sleep(3.0)
-        second = data()
-        seen["rows"] = (len(first["t_ms"]), len(second["t_ms"]))
-        seen["first"], seen["second"] = first, second
+        seen["second"] = summary()
         # ... a button sends a command the vehicle acknowledges (MAV_CMD_DO_SET_MODE = 176) ...
         driver.execute_script(JS_BUTTON, "mode-guided").click()
-        seen["ack"] = _until(lambda: "command 176: accepted" in (driver.execute_script(JS_TEXT, "events") or "")
-                             and driver.execute_script(JS_TEXT, "events"), 20, "the mode command's COMMAND_ACK")
-        seen["feedback"] = driver.execute_script(JS_TEXT, "feedback")
+        seen["ack"] = _until(lambda: "command 176: accepted" in (t := text("events")) and t, 60,
+                             "the mode command's COMMAND_ACK in the events")
+        seen["feedback"] = text("feedback")
+        mark("ack shown")
         # ... a typed command line is sent too: the vehicle's depth setpoint telemetry follows it
         box = driver.execute_script(JS_INPUT, "in-command")
         box.clear()
         box.send_keys("depth 0.35")
         driver.execute_script(JS_BUTTON, "cmd-send").click()
-        seen["depth_sp"] = _until(lambda: any(x is not None and abs(x - 0.35) < 1e-6
-                                              for x in data()["depth_sp"]), 20, "depth setpoint 0.35 in the plots")
+        _until(lambda: driver.execute_script(JS_ANY, "depth_sp", 0.35), 60, "depth setpoint 0.35 in the plots")
+        seen["feedback_depth"] = text("feedback")
+        mark("typed depth flown")
         time.sleep(settle_s)
         driver.save_screenshot(str(screenshot))
         # the link is lost: the onboard loop is frozen (SIGSTOP), the page goes on
         os.kill(procs["onboard"].pid, signal.SIGSTOP)
-        seen["lost_status"] = _until(lambda: "LINK LOST" in (driver.execute_script(JS_TEXT, "status") or "")
-                                     and driver.execute_script(JS_TEXT, "status"), 20, "LINK LOST on the page")
-        during0 = data()
+        seen["lost_status"] = _until(lambda: "LINK LOST" in (t := text("status")) and t, 30, "LINK LOST on the page")
+        mark("link lost shown")
+        seen["during0"] = summary()
         time.sleep(2.0)
-        during1 = data()
-        seen["during"] = (during0, during1)
+        seen["during1"] = summary()
         driver.execute_script(JS_BUTTON, "cmd-disarm").click()  # the page still takes commands
-        seen["feedback_lost"] = _until(lambda: "disarm" in (driver.execute_script(JS_TEXT, "feedback") or "")
-                                       and driver.execute_script(JS_TEXT, "feedback"), 10, "the disarm click answered")
+        seen["feedback_lost"] = _until(lambda: "disarm" in (t := text("feedback")) and t, 30, "the disarm click answered")
         # and the link comes back
         os.kill(procs["onboard"].pid, signal.SIGCONT)
-        seen["back_events"] = _until(lambda: "link back after" in (driver.execute_script(JS_TEXT, "events") or "")
-                                     and driver.execute_script(JS_TEXT, "events"), 20, "the link back on the page")
-        n_lost = len(during1["t_ms"])
-        seen["after"] = _until(lambda: (d := data()) and any(x is not None for x in d["roll"][-5:]) and d, 20,
-                               "attitude rows again after the link came back")
-        seen["n_lost"] = n_lost
+        seen["back_status"] = _until(lambda: "link UP" in (t := text("status")) and t, 60, "link UP again on the page")
+        seen["back_events"] = text("events")
+        mark("link back shown")
+        seen["after"] = _until(lambda: (d := summary()) and d["roll"][GAPS] == 0 and d["thrust0"][GAPS] == 0 and d, 60,
+                               "attitude and thrust rows again after the link came back")
+        mark("attitude again")
         seen["browser_log"] = [e for e in driver.get_log("browser") if e.get("level") == "SEVERE"]
         return seen
     finally:
         if driver is not None:
             driver.quit()
+        print("timeline (s):", seen["timeline"])
         for name, p in procs.items():  # shown by pytest when the test fails
             print(f"--- jetloop {name} (exit {p.poll()}):\n{_stop(p)[-3000:]}")
 
@@ -278,27 +299,27 @@ def test_dashboard_in_chromium_plots_a_live_flight_sends_commands_and_rides_out_
     seen = fly_and_watch(png)
     first, second = seen["first"], seen["second"]
     # the plots' data source grows and its values change (the flight moves)
-    assert len(second["t_ms"]) >= len(first["t_ms"]) + 15, seen["rows"]  # 3 s at 10 rows/s, on a busy machine
-    assert second["t_ms"][-1] > first["t_ms"][-1]
+    assert second["t_ms"][ROWS] >= first["t_ms"][ROWS] + 10, (first["t_ms"], second["t_ms"])  # 3 s at 10 rows/s
+    assert second["t_ms"][LAST] > first["t_ms"][LAST]
     for k in ("roll", "depth", "thrust0", "az0", "step_ms", "rate_hz"):
-        a = [x for x in first[k] if x is not None]
-        b = [x for x in second[k] if x is not None]
-        assert b and b != a[:len(b)], k
-        assert max(b) > min(b), k  # not a flat line
+        assert second[k][FINITE] > first[k][FINITE], (k, first[k], second[k])  # new values came
+        assert second[k][MAX] > second[k][MIN], (k, second[k])  # and they move: not a flat line
     for k in PANEL_COLUMNS:  # every panel has data
-        assert any(x is not None for x in second[k]), k
+        assert second[k][FINITE] > 0, k
     # the button: COMMAND_LONG out, COMMAND_ACK back from the vehicle, shown in the events
     assert "command 176: accepted" in seen["ack"]
     assert "sent <b>mode guided</b>" in seen["feedback"]
+    assert "sent <b>depth 0.35</b>" in seen["feedback_depth"]
     # link loss: rows keep coming, the vehicle's values are gaps, the link flag is down
-    d0, d1 = seen["during"]
-    assert len(d1["t_ms"]) > len(d0["t_ms"]) and d1["t_ms"][-1] > d0["t_ms"][-1]
-    assert all(x is None for x in d1["roll"][-10:]) and all(x is None for x in d1["thrust0"][-10:])
-    assert d1["flag_link_up"][-1] == 0.0
+    d0, d1 = seen["during0"], seen["during1"]
+    assert d1["t_ms"][LAST] > d0["t_ms"][LAST] and d1["t_ms"][GAPS] == 0
+    assert d1["roll"][GAPS] >= 10 and d1["thrust0"][GAPS] >= 10, (d1["roll"], d1["thrust0"])  # 2 s of gaps at least
+    assert d1["flag_link_up"][LAST] == 0.0 and d1["rate_hz"][GAPS] == 0
     assert "LINK LOST" in seen["lost_status"]
     assert "sent <b>disarm</b>" in seen["feedback_lost"]
-    assert "link back after" in seen["back_events"]
-    assert len(seen["after"]["t_ms"]) > seen["n_lost"]
+    # the link back: the status says so and the lines resume
+    assert "link UP" in seen["back_status"]
+    assert seen["after"]["roll"][FINITE] > d1["roll"][FINITE]
     assert seen["browser_log"] == []  # no errors in the page (websocket, scripts)
     head = png.read_bytes()[:8]
     assert head == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 50_000  # a page of plots, not a blank one
@@ -308,4 +329,5 @@ if __name__ == "__main__":  # the README's screenshot: python3 tests/test_web_da
     target = Path(sys.argv[1] if len(sys.argv) > 1 else "docs/dashboard.png")
     target.parent.mkdir(parents=True, exist_ok=True)
     got = fly_and_watch(target, settle_s=10.0)  # the dive and the turn in the plots
-    print(f"wrote {target}: {got['rows'][1]} rows in the page, ack: {'command 176: accepted' in got['ack']}")
+    print(got["timeline"])
+    print(f"wrote {target}: {got['second']['t_ms'][ROWS]} rows in the page, ack: {'command 176: accepted' in got['ack']}")
