@@ -164,19 +164,24 @@ def _fly(args, backend, vehicle, mavutil, model) -> int:
     results = {}
     for mode in ("STABILIZE", "ALT_HOLD"):
         ok = set_mode(mode)
-        depths, headings = [], []
+        times, depths, headings = [], [], []
         t0 = backend.time_s  # plant (simulated) time: lock-step may run slower than the wall clock
         while backend.time_s - t0 < args.hold:
             mav.recv_match(blocking=True, timeout=0.1)
             d, h, _ = _truth(backend, model)
+            times.append(backend.time_s - t0)
             depths.append(d)
             headings.append(h)
-        h0 = headings[0]
+        d0, h0 = depths[0], headings[0]  # at the mode change: what ALT_HOLD and the heading hold keep
+        dd = [d - d0 for d in depths]
         dh = [((h - h0 + 180) % 360) - 180 for h in headings]
-        results[mode] = (min(depths), max(depths), min(dh), max(dh))
-        print(f"{mode} ({'ok' if ok else 'mode not confirmed'}), sticks centred for {args.hold:.0f} s: "
-              f"depth {min(depths):.3f}..{max(depths):.3f} m (spread {max(depths) - min(depths):.3f} m), "
-              f"heading spread {max(dh) - min(dh):.2f} deg", flush=True)
+        late = [i for i, t in enumerate(times) if t >= 10.0]  # after 10 s of settling
+        results[mode] = (max(map(abs, dd)), max(map(abs, dh)))
+        print(f"{mode} ({'ok' if ok else 'mode not confirmed'}), sticks centred for {args.hold:.0f} s of plant time: "
+              f"depth {min(depths):.3f}..{max(depths):.3f} m, largest change from the {d0:.3f} m at entry "
+              f"{max(map(abs, dd)):.3f} m (after 10 s: {max(abs(dd[i]) for i in late):.3f} m); heading: largest "
+              f"change from entry {max(map(abs, dh)):.2f} deg (after 10 s: {max(abs(dh[i]) for i in late):.2f} deg), "
+              f"{dh[-1]:+.2f} deg at the end", flush=True)
     for name, key, value in (("forward", "x", 500), ("lateral", "y", 500)):
         _, h0, p0 = _truth(backend, model)
         stick[key] = value
