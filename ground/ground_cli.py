@@ -3,6 +3,7 @@
     jetloop ground [--link udpin:127.0.0.1:14550] [--record DIR] [--key KEYFILE]
                    [--rates ATTITUDE=10,NAMED_VALUE_FLOAT=5] [--cmd "depth 1.5"]...
                    [--duration S | --once] [--plain]
+    jetloop ground --web [--port 8080] ...          (the live dashboard in a browser: ground/web.py)
     jetloop plot REC.tlog --out DIR [--vehicle V.toml]
 
 `GroundSession` is the IO loop: it reads the link, records every packet (both directions),
