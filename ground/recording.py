@@ -18,8 +18,9 @@ Dataflash `.bin` logs are read with pymavlink's DFReader (IMU, BARO instance 1 =
 sensor, RCOU, ATT, ESC); the bytes its parser skips are counted as well.
 
 Streams are aligned on vehicle time (the messages' own `time_usec` / `time_boot_ms`, in
-seconds since boot; SERVO_OUTPUT_RAW's uint32 microseconds unwrapped and put on the clock of the
-other streams). Within a stream, dropped and counted: a sample with a NaN, inf or physically
+seconds since boot; SERVO_OUTPUT_RAW's uint32 microseconds and every uint32 `time_boot_ms`
+(49.7 days) unwrapped, and the servo stream put on the clock of the other streams through the
+logger's offset from them where it is in the log, so a jump of vehicle time is followed). Within a stream, dropped and counted: a sample with a NaN, inf or physically
 impossible value (`out_of_range`), an impossible time or one out of line with its neighbours, a
 flipped bit (`bad_time`), a time that does not increase (`non_monotonic`). Gaps longer than five
 nominal periods are listed; a stop over `SEGMENT_GAP_S` splits the recording into `segments()`,
@@ -560,17 +561,41 @@ WANTED = ("HEARTBEAT", "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "S
           "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ESC_TELEMETRY_1_TO_4", "ATT_POS_MOCAP")
 
 
-def _log_clock_offset(decoded, ts, use, mid, name_to_id):
-    """Median (logger time - vehicle time) in s over every stream that carries a vehicle time
-    that does not wrap within hours, or None (pooled: a stamp with a flipped bit is outvoted)."""
-    diffs = []
+def _log_clock_reference(decoded, ts, use, mid, name_to_id):
+    """(logger time, logger - vehicle time) of every sample of the streams whose vehicle time does
+    not wrap within hours, sorted by logger time, or None: the offset where in the log it held."""
+    t_logs, diffs = [], []
     for name, clock, scale in (("HIGHRES_IMU", "time_usec", 1e-6), ("SCALED_PRESSURE2", "time_boot_ms", 1e-3),
                                ("ATTITUDE", "time_boot_ms", 1e-3), ("SCALED_IMU2", "time_boot_ms", 1e-3)):
         if name in decoded and len(decoded[name]):
             t_log = ts[use & (mid == name_to_id[name])].astype(np.float64) / 1e6
-            t_vehicle = np.asarray(decoded[name][clock], np.float64) * scale
+            raw = decoded[name][clock]
+            t_vehicle = (_unwrap_ms(raw) if clock == "time_boot_ms" else np.asarray(raw, np.float64)) * scale
+            t_logs.append(t_log)
             diffs.append(t_log - t_vehicle)
-    return float(np.median(np.concatenate(diffs))) if diffs else None
+    if not t_logs:
+        return None
+    t_log, diff = np.concatenate(t_logs), np.concatenate(diffs)
+    order = np.argsort(t_log, kind="stable")
+    return t_log[order], diff[order]
+
+
+def _local_offset(t_log_s, ref, window: int = 9):
+    """For each logger time, the logger - vehicle offset of the reference samples around it in the
+    log (the median of the `window` nearest in logger time: a flipped bit is outvoted), so a
+    stretch after a jump of the vehicle's time that the logger's clock did not make (or made
+    differently) is placed by its own neighbours, not by the whole log's median (issue 15, second
+    pass: a servo stream stayed 1e5 s off the IMU). None without a reference."""
+    if ref is None:
+        return None
+    r_log, r_off = ref
+    n = len(r_off)
+    w = min(window, n)
+    if w < n:
+        med = np.median(np.lib.stride_tricks.sliding_window_view(r_off, w), axis=1)  # n - w + 1 windows
+        i = np.clip(np.searchsorted(r_log, np.asarray(t_log_s, float)) - w // 2, 0, n - w)
+        return med[i]
+    return np.full(len(t_log_s), float(np.median(r_off)))
 
 
 def _read_tlog(path: Path, data: bytes) -> Recording:
@@ -595,26 +620,26 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
             decoded[name] = _decode_bulk(buf, off[sel], plen[sel], d.mavlink_map[name_to_id[name]])
     tally = _Tally()
     imu = _imu_from_tlog(decoded, tally)
-    offset = _log_clock_offset(decoded, ts, use, mid, name_to_id)
+    reference = _log_clock_reference(decoded, ts, use, mid, name_to_id)
     pressure = None
     if "SCALED_PRESSURE2" in decoded:
         a = decoded["SCALED_PRESSURE2"]
         p_pa = np.asarray(a["press_abs"], float) * 100.0
-        t, keep = _monotonic(a["time_boot_ms"] / 1e3, "pressure", tally, _press_valid(p_pa))
+        t, keep = _monotonic(_unwrap_ms(a["time_boot_ms"]) / 1e3, "pressure", tally, _press_valid(p_pa))
         pressure = PressureStream(_frozen(t), _frozen(p_pa[keep]), "SCALED_PRESSURE2")
     attitude = None
     if "ATTITUDE" in decoded:
         a = decoded["ATTITUDE"]
         e = np.column_stack([a["roll"], a["pitch"], a["yaw"]]).astype(float)
         r = np.column_stack([a["rollspeed"], a["pitchspeed"], a["yawspeed"]]).astype(float)
-        t, keep = _monotonic(a["time_boot_ms"] / 1e3, "attitude", tally, _attitude_valid(e, r))
+        t, keep = _monotonic(_unwrap_ms(a["time_boot_ms"]) / 1e3, "attitude", tally, _attitude_valid(e, r))
         attitude = AttitudeStream(_frozen(t), _frozen(e[keep]), _frozen(r[keep]))
     servo = None
     if "SERVO_OUTPUT_RAW" in decoded:
         t_log = ts[use & (mid == name_to_id["SERVO_OUTPUT_RAW"])].astype(np.float64) / 1e6
         ref = [s.time_s for s in (imu, pressure, attitude) if s is not None and len(s.time_s)]
         span = (min(float(x[0]) for x in ref), max(float(x[-1]) for x in ref)) if ref else None
-        servo = _servo_from_tlog(decoded["SERVO_OUTPUT_RAW"], t_log, offset, span, tally)
+        servo = _servo_from_tlog(decoded["SERVO_OUTPUT_RAW"], t_log, _local_offset(t_log, reference), span, tally)
     esc = None
     if "ESC_STATUS" in decoded:
         a = decoded["ESC_STATUS"]
@@ -627,8 +652,8 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
         # place it on vehicle time through the logger clock's offset from a stream that has one
         sel = use & (mid == name_to_id["ESC_TELEMETRY_1_TO_4"])
         t_log = ts[sel].astype(np.float64) / 1e6
-        if offset is not None:
-            t, keep = _monotonic(t_log - offset, "esc", tally)
+        if reference is not None:
+            t, keep = _monotonic(t_log - _local_offset(t_log, reference), "esc", tally)
             esc = EscStream(_frozen(t), _frozen(np.asarray(decoded["ESC_TELEMETRY_1_TO_4"]["rpm"], float)[keep]))
     mocap = None
     if "ATT_POS_MOCAP" in decoded:
@@ -675,11 +700,23 @@ def _unwrap_us(t_us) -> np.ndarray:
 WRAP_S = 2.0 ** 32 / 1e6  # a uint32 microsecond clock's period: 4294.967296 s (71.6 min)
 
 
+def _unwrap_ms(t_ms) -> np.ndarray:
+    """time_boot_ms is uint32 milliseconds: it wraps after 49.7 days up. Unwrapped within the log
+    as `_unwrap_us` does (a step back of more than 2^31 ms is a wrap), in ms as float."""
+    t = np.asarray(t_ms).astype(np.float64)
+    if t.size > 1:
+        jumps = np.diff(t) < -2.0 ** 31
+        if jumps.any():
+            t = t + np.concatenate([[0.0], np.cumsum(jumps) * 2.0 ** 32])
+    return t
+
+
 def _align_wrapped(t_s, t_log_s, offset_s, span=None):
     """A uint32-us stream whose whole wraps before the log began, or during a gap in it, are
     unknown (a vehicle up for more than 71.6 min, a log that stops for hours): each stretch
     between jumps gets the whole periods that put it on the vehicle clock of the other streams,
-    through the logger clock (`offset_s`, logger - vehicle, from a stream that does not wrap).
+    through the logger clock (`offset_s`, logger - vehicle, from a stream that does not wrap; one
+    per sample, where the log held it, or one for the whole log).
     The stretch must land within `span` (first, last vehicle time of the streams that do not
     wrap) when there is one: if the logger's stamps there are damaged, the one whole number of
     periods that puts it inside the span is taken, or none. Without a reference, or where the
@@ -902,7 +939,7 @@ def _imu_from_tlog(decoded: dict, tally: _Tally) -> ImuStream | None:
         if name in decoded and any(np.any(decoded[name][k] != 0) for k in ("xacc", "yacc", "zacc")):
             a = decoded[name]
             scale_t = 1e-3 if tkey == "time_boot_ms" else 1e-6
-            t_raw = a[tkey] * scale_t if tkey == "time_boot_ms" else _unwrap_us(a[tkey]) * scale_t
+            t_raw = (_unwrap_ms(a[tkey]) if tkey == "time_boot_ms" else _unwrap_us(a[tkey])) * scale_t
             # mG -> m/s^2, mrad/s -> rad/s (ArduPilot GCS_Common)
             acc = np.column_stack([a["xacc"], a["yacc"], a["zacc"]]).astype(float) * G_MSS / 1000.0
             gyr = np.column_stack([a["xgyro"], a["ygyro"], a["zgyro"]]).astype(float) / 1000.0
@@ -916,6 +953,8 @@ def _servo_from_tlog(a, t_log_s, offset_s, span, tally: _Tally) -> ServoStream:
     # further banks of 8 that ArduSub does not use.
     if (a["port"] == 0).any():
         t_log_s = t_log_s[a["port"] == 0]
+        if offset_s is not None and np.ndim(offset_s):
+            offset_s = offset_s[a["port"] == 0]
         a = a[a["port"] == 0]
     # time_usec is uint32: unwrapped within the log, then put on the other streams' clock
     t = _align_wrapped(_unwrap_us(a["time_usec"]) / 1e6, t_log_s, offset_s, span)

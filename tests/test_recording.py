@@ -358,6 +358,51 @@ def test_servo_uint32_clock_of_a_long_up_vehicle_is_put_on_the_imu_clock(tmp_pat
     assert rec.skipped.non_monotonic == {} and rec.skipped.gaps == ()
 
 
+def test_a_vehicle_time_jump_with_a_wrapping_servo_clock_keeps_the_servo_on_the_imu_clock(tmp_path):
+    """Issue 15, second pass: the vehicle's time jumps 1e5 s (23.28 servo-clock periods) while the
+    logger's clock runs on, in a log of a vehicle up 8580 s. The servo stretch after the jump was
+    placed through the logger offset of the whole log (its median, the first stretch's) and stayed
+    on its raw uint32 clock, 1e5 s from the IMU; each stretch now takes the logger offset of the
+    streams around it in the log."""
+    t0, jump = 8580.0, 1e5
+    recs, servo_t = [], []
+    for i in range(400):
+        t = t0 + i * 0.01 + (jump if i >= 200 else 0.0)
+        recs.append((i * 0.01, _imu(t)))
+        recs.append((i * 0.01, _pressure(t, 101325.0)))
+        if i % 4 == 0:
+            servo = _servo(0.0, [1500] * 16)
+            servo.time_usec = int(round(t * 1e6)) % 2 ** 32
+            recs.append((i * 0.01, servo))
+            servo_t.append(t)
+    p = tmp_path / "jump_wrap.tlog"
+    p.write_bytes(_tlog(recs))
+    rec = read_recording(p)
+    assert len(rec.servo.time_s) == 100
+    np.testing.assert_allclose(rec.servo.time_s, servo_t, atol=1e-6)
+    assert [len(s.servo.time_s) for s in rec.segments()] == [50, 50]
+
+
+def test_time_boot_ms_wrapping_in_the_log_is_unwrapped(tmp_path):
+    """time_boot_ms is uint32 ms: it wraps after 49.7 days up. A log across the wrap lost every
+    pressure sample after it (out of line); they now follow on the IMU's uint64 clock."""
+    wrap_s = 2 ** 32 / 1e3
+    t0 = wrap_s - 1.0  # the wrap 1 s into a 3 s log
+    recs = []
+    for i in range(300):
+        t = t0 + i * 0.01
+        recs.append((i * 0.01, _imu(t)))
+        pr = _pressure(0.0, 101325.0 + i)
+        pr.time_boot_ms = int(round(t * 1e3)) % 2 ** 32
+        recs.append((i * 0.01, pr))
+    p = tmp_path / "wrap_ms.tlog"
+    p.write_bytes(_tlog(recs))
+    rec = read_recording(p)
+    assert len(rec.pressure.time_s) == 300 and rec.skipped.non_monotonic == {} and rec.skipped.bad_time == {}
+    np.testing.assert_allclose(rec.pressure.time_s, rec.imu.time_s, atol=1e-3)
+    assert rec.duration_s == pytest.approx(2.99, abs=0.01)
+
+
 def test_time_jump_splits_segments_and_an_out_of_line_stamp_is_dropped(tmp_path):
     """Issue 15 items 5 and 9: vehicle time jumping 1e5 s splits the recording into two segments
     (what diagnose works on, memory by the data); one sample whose time has a flipped high bit is
