@@ -111,6 +111,8 @@ MESSAGES = frozenset({
     "MISSION_ITEM_INT", "FILE_TRANSFER_PROTOCOL",
 })
 FTP_NAK, FTP_ERR_UNKNOWN_COMMAND = 129, 7  # MAVLink FTP opcode NAK, error UnknownCommand
+FTP_FIRST_REPLY = 128  # opcodes from 128 (ACK, NAK) are replies: never answered (two robots would ping-pong)
+INT32_MAX = 2**31 - 1
 
 
 class Identity:
@@ -175,7 +177,10 @@ class Microservices:
                                    getattr(cfg, "parameter_file", None))
         self.uid = zlib.crc32(loop.vehicle.name.encode()) or 1  # AUTOPILOT_VERSION.uid: stable per vehicle
         self._after_ack: list = []
-        self._apply(set(p.group for p in P.PARAMS if p.name in self.params.changed()))
+        try:  # each value of the file is in its range; together they must still make a loop
+            self._apply(set(p.group for p in P.PARAMS if p.name in self.params.changed()))
+        except (ValueError, TypeError) as exc:
+            raise P.ParameterFileError(f"{self.params.path}: {str(exc)[:200]}") from exc
         self.apply_identity()
 
     # -- identity -------------------------------------------------------------------------------
@@ -282,6 +287,8 @@ class Microservices:
         elif name == "FILE_TRANSFER_PROTOCOL":  # no file service: every request NAKed at once, so a
             req = bytes(m.payload[:12])        # ground station falls back (MAVProxy: PARAM_REQUEST_LIST)
             seq, session, opcode = struct.unpack_from("<HBB", req)
+            if opcode >= FTP_FIRST_REPLY:
+                return
             nak = struct.pack("<HBBBBBBIB", (seq + 1) & 0xFFFF, session, FTP_NAK, 1, opcode, 0, 0, 0,
                               FTP_ERR_UNKNOWN_COMMAND)
             out.send(mavlink.MAVLink_file_transfer_protocol_message(0, m.get_srcSystem(), m.get_srcComponent(),
@@ -379,7 +386,8 @@ class Microservices:
                     return mavlink.MAV_RESULT_DENIED
                 self._after_ack.extend(modes)
                 return mavlink.MAV_RESULT_ACCEPTED
-            msg = self.message(int(p1), m)
+            # MESSAGE_INTERVAL names the message it is about in param2 (MAVLink's MESSAGE_INTERVAL doc)
+            msg = self.message(int(p1), m.param2 if int(p1) == mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL else None)
             if msg is None:
                 return mavlink.MAV_RESULT_DENIED
             self._after_ack.append(msg)
@@ -388,7 +396,7 @@ class Microservices:
             self._after_ack.append(self.autopilot_version())
             return mavlink.MAV_RESULT_ACCEPTED
         if cmd == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
-            msg = self.message(mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL, m)
+            msg = self.message(mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL, m.param1)
             if msg is None:
                 return mavlink.MAV_RESULT_DENIED
             self._after_ack.append(msg)
@@ -401,8 +409,9 @@ class Microservices:
         for msg in msgs:
             out.send(msg)
 
-    def message(self, msg_id: int, request=None):
-        """The message `msg_id` as the robot can fill it truthfully now, else None."""
+    def message(self, msg_id: int, about=None):
+        """The message `msg_id` as the robot can fill it truthfully now, else None; `about`: for
+        MESSAGE_INTERVAL, the id of the message whose interval it reports."""
         loop = self.loop
         now = loop.clock.now()
         t = now if math.isfinite(now) and now > 0 else 0.0
@@ -423,14 +432,18 @@ class Microservices:
             return mavlink.MAVLink_attitude_message(ms, r, p, y, wx, wy, wz)
         if msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             return self.local_position(t)
-        if msg_id == mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL and request is not None:
-            cls = mavlink.mavlink_map.get(int(request.param1)) if math.isfinite(request.param1) else None
+        if msg_id == mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL and about is not None:
+            about = float(about)
+            cls = mavlink.mavlink_map.get(int(about)) if math.isfinite(about) and about.is_integer() else None
             if cls is None:
                 return None
             hz = loop.rates.rate_hz.get(cls.msgname, loop.rates.default_hz.get(cls.msgname))
             if hz is None:
-                return mavlink.MAVLink_message_interval_message(int(request.param1), 0)  # not supported
-            return mavlink.MAVLink_message_interval_message(int(request.param1), int(1e6 / hz) if hz > 0 else -1)
+                return mavlink.MAVLink_message_interval_message(int(about), 0)  # not supported
+            # interval_us is an int32: a rate set from a very long interval (SET_MESSAGE_INTERVAL takes
+            # any float) is reported as the longest it can say, at least 1 us for a very high one
+            us = min(max(round(1e6 / hz), 1), INT32_MAX) if hz > 0 else -1
+            return mavlink.MAVLink_message_interval_message(int(about), us)
         return None
 
     @staticmethod

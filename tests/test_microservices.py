@@ -357,3 +357,68 @@ def test_jetloop_onboard_with_a_bad_parameter_file_exits_2_with_one_line(tmp_pat
                         "--params", str(bad), "--duration", "1"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r
     assert r.stderr.strip().splitlines() == [f"jetloop onboard: {bad}:1: CTL_DEPTH_BW 99 rad/s: expected 0.1-6 rad/s"]
+
+
+# -- hostile or odd requests, in process (the loop's handle, the replies it sends) --------------------
+
+def _decoded(msg):
+    """`msg` as the robot receives it from system 255 (packed and parsed, header and all)."""
+    return mavlink.MAVLink(None, 1, 1).parse_char(msg.pack(mavlink.MAVLink(None, 255, 190)))
+
+
+@pytest.fixture
+def bare_loop():
+    link = Link("udpin:127.0.0.1:0")
+    loop = OnboardLoop(load_vehicle(), link, WallClock(), LoopConfig(), warm_up=False)
+    sent = []
+    link.send = sent.append  # the replies, in order
+    yield loop, sent
+    link.close()
+
+
+def test_the_interval_of_a_very_slow_stream_is_reported_not_a_crash(bare_loop):
+    """SET_MESSAGE_INTERVAL takes any float: 1e12 us is a rate of 1e-6 Hz, whose interval does not
+    fit MESSAGE_INTERVAL's int32 (before the fix the pack raised struct.error out of the loop: two
+    commands from any ground station ended `jetloop onboard`)."""
+    loop, sent = bare_loop
+    cmd = mavlink.MAVLink_command_long_message
+    loop.handle(_decoded(cmd(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 30, 1e12, 0, 0, 0, 0, 0)))
+    sent.clear()
+    loop.handle(_decoded(cmd(1, 1, mavlink.MAV_CMD_GET_MESSAGE_INTERVAL, 0, 30, 0, 0, 0, 0, 0, 0)))
+    assert [m.get_type() for m in sent] == ["COMMAND_ACK", "MESSAGE_INTERVAL"]
+    assert (sent[1].message_id, sent[1].interval_us) == (30, 2**31 - 1)
+
+
+def test_request_message_interval_reports_the_message_named_in_param2(bare_loop):
+    """MAVLink's MESSAGE_INTERVAL: requested with param1 244 and param2 the message id (before the
+    fix the answer was about message 244 itself)."""
+    loop, sent = bare_loop
+    loop.handle(_decoded(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                              mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL,
+                                                              mavlink.MAVLINK_MSG_ID_ATTITUDE, 0, 0, 0, 0, 0)))
+    assert sent[0].result == mavlink.MAV_RESULT_ACCEPTED
+    assert (sent[1].message_id, sent[1].interval_us) == (mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000)  # 10 Hz
+
+
+def test_an_ftp_reply_is_not_answered(bare_loop):
+    """Only requests get the NAK: a NAK (opcode 129) from another robot answered with a NAK would
+    ping-pong between the two for ever."""
+    import struct
+
+    loop, sent = bare_loop
+    nak = struct.pack("<HBBBBBBIB", 6, 0, 129, 1, 4, 0, 0, 0, 7)
+    loop.handle(_decoded(mavlink.MAVLink_file_transfer_protocol_message(0, 1, 1, list(nak.ljust(251, b"\0")))))
+    assert not [m for m in sent if m.get_type() == "FILE_TRANSFER_PROTOCOL"]
+
+
+def test_a_parameter_file_whose_values_are_each_in_range_but_no_loop_together_is_one_error(tmp_path):
+    """All six allocation weights 0 is each in ALLOC_W_*'s range, but no allocator: the start is a
+    ParameterFileError naming the file (before the fix a ValueError traceback from the allocator)."""
+    f = tmp_path / "v.params"
+    f.write_text("".join(f"ALLOC_W_{a} 0\n" for a in P.AXES))
+    link = Link("udpin:127.0.0.1:0")
+    try:
+        with pytest.raises(P.ParameterFileError, match=r"v.params: AllocationConfig.axis_weights: .*not all zero"):
+            OnboardLoop(load_vehicle(), link, WallClock(), LoopConfig(parameter_file=str(f)), warm_up=False)
+    finally:
+        link.close()
