@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -176,8 +177,11 @@ def _browser():
     opts.binary_location = str(CHROMIUM)
     for f in CHROMIUM_FLAGS:
         opts.add_argument(f)
-    opts.add_argument(f"--user-data-dir={tempfile.mkdtemp(prefix='jetloop-chromium-')}")
-    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
+    profile = tempfile.mkdtemp(prefix="jetloop-chromium-")  # a fresh profile, removed after quit()
+    opts.add_argument(f"--user-data-dir={profile}")
+    driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
+    driver.profile_dir = profile
+    return driver
 
 
 # JavaScript run in the page: the Bokeh document's models are what the plots draw. A column's
@@ -288,6 +292,7 @@ def fly_and_watch(screenshot: Path, settle_s: float = 0.0) -> dict:
     finally:
         if driver is not None:
             driver.quit()
+            shutil.rmtree(driver.profile_dir, ignore_errors=True)
         print("timeline (s):", seen["timeline"])
         for name, p in procs.items():  # shown by pytest when the test fails
             print(f"--- jetloop {name} (exit {p.poll()}):\n{_stop(p)[-3000:]}")
