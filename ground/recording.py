@@ -771,11 +771,25 @@ class _Tally:
             d[stream] = d.get(stream, 0) + int(n)
 
 
-def _out_of_line(t: np.ndarray) -> np.ndarray:
+def _out_of_line(t: np.ndarray, rounds: int = 8) -> np.ndarray:
     """Samples whose time is out of line with the stream: a run of at most 4 samples that jumps
     ahead of the samples after it while those follow on from the samples before it (a flipped
     bit in a stamp). A real gap never goes back, so it is kept; a sample going back is left to
-    the monotonic check."""
+    the monotonic check. Judged again without what was found (at most `rounds` times): a run
+    judged against one that was itself out of line was kept (issue 15, second pass: the first
+    IMU stamp of small.BIN flipped to 1339 s hid the next flipped one, 1.4e8 s, and every later
+    sample was dropped as going back)."""
+    out = np.zeros(len(t), dtype=bool)
+    for _ in range(rounds):
+        idx = np.nonzero(~out)[0]
+        more = _out_of_line_once(np.asarray(t)[idx])
+        if not more.any():
+            break
+        out[idx[more]] = True
+    return out
+
+
+def _out_of_line_once(t: np.ndarray) -> np.ndarray:
     n = len(t)
     out = np.zeros(n, dtype=bool)
     if n < 2:
