@@ -119,6 +119,9 @@ def test_the_shipped_example_specs_parse(tmp_path):
     ("kind = 'prove'\n[prove]\nsplit = 'test'\n", "prove.split: expected one of dev, eval, got 'test'"),
     ("kind = 'diagnose'\n[diagnose]\nrecordings = 'none/*.tlog'\n", "diagnose.recordings: expected a glob that matches at least one recording file"),
     ("kind = 'missions'\n[missions\n", "not valid TOML"),
+    # TOML nests dotted keys thousands deep: a RecursionError traceback before the fix
+    pytest.param("kind = 'missions'\n[missions]\ndraws = 2\n[missions.perturb]\n" + "a." * 5000 + "b = 0.1\n",
+                 "missions.perturb: expected dotted vehicle keys", id="perturb-nested-5000-deep"),
     (f"kind = 'missions'\nvehicle = '{REPO / 'onboard' / 'data' / 'bluerov2_heavy.toml'}'\n",
      "vehicle: " + str(REPO / "onboard" / "data" / "bluerov2_heavy.toml") + ": bluerov2_heavy has fixed thrusters only"),
 ])
@@ -133,6 +136,15 @@ def test_a_bad_spec_is_one_line_naming_file_and_key(tmp_path, capsys, text, says
     assert len(err.strip().splitlines()) == 1, err
     assert err.startswith(f"jetloop campaign: {spec}: ") and says in err, err
     assert not (tmp_path / "out" / "results.parquet").exists()
+
+
+def test_a_long_fault_name_is_shortened_in_the_error(tmp_path, capsys):
+    """The line names the key, not 100 kB of it (before the fix the whole name was echoed)."""
+    spec = write_spec(tmp_path, "kind = 'missions'\n[missions.faults]\n" + "n" * 100_000 + " = { dead-jet = 'x' }\n")
+    assert main(["campaign", str(spec), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "missions.faults.nnnn" in err and " ...: dead-jet 'x'" in err, err[:300]
+    assert len(err) < 400, len(err)
 
 
 def test_an_absurd_vehicle_file_in_a_spec_is_one_line(tmp_path, capsys, reference_text):

@@ -313,7 +313,12 @@ def _missions(p: _Problems, sec: dict, seed: int, vehicle_text, vehicle) -> list
         p.add(f"{w}.perturb", "a table of dotted vehicle keys -> relative 1-sigma", perturb)
         perturb = {}
     flat_perturb = {}
-    for key, sigma in _flatten(perturb).items():
+    try:
+        flat = _flatten(perturb)
+    except ValueError as exc:
+        p.add(f"{w}.perturb", "dotted vehicle keys (e.g. \"hydro.added_mass\")", str(exc))
+        flat = {}
+    for key, sigma in flat.items():
         if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (math.isfinite(sigma) and 0 <= sigma <= 1):
             p.add(f"{w}.perturb.{key}", "a relative 1-sigma 0..1", sigma)
         else:
@@ -395,17 +400,24 @@ def _missions(p: _Problems, sec: dict, seed: int, vehicle_text, vehicle) -> list
     return tasks
 
 
-def _key_text(name) -> str:
+def _key_text(name, limit: int = 60) -> str:
     name = str(name)
-    return name if name.replace("_", "").replace("-", "").isalnum() else json.dumps(name)
+    text = name if name.replace("_", "").replace("-", "").isalnum() else json.dumps(name)
+    return text if len(text) <= limit else text[:limit - 4] + " ..."
 
 
-def _flatten(d: dict, prefix: str = "") -> dict:
+MAX_KEY_DEPTH = 8  # a vehicle key is a few levels deep ("hydro.added_mass"); TOML allows thousands
+
+
+def _flatten(d: dict, prefix: str = "", depth: int = 0) -> dict:
+    """{"a.b": v} of {"a": {"b": v}}; ValueError past MAX_KEY_DEPTH levels (not a RecursionError)."""
+    if depth >= MAX_KEY_DEPTH:
+        raise ValueError(f"{_key_text(prefix.rstrip('.'))}... is nested more than {MAX_KEY_DEPTH} levels deep")
     out = {}
     for k, v in d.items():
         key = f"{prefix}{k}"
         if isinstance(v, dict):
-            out.update(_flatten(v, key + "."))
+            out.update(_flatten(v, key + ".", depth + 1))
         else:
             out[key] = v
     return out
