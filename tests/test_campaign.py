@@ -387,3 +387,19 @@ def test_a_loopback_flight_takes_link_faults(tmp_path):
     assert row["status"] == "ok" and row["lockstep_periods"] == 800
     assert [d["flag"] for d in row["detections"]] == ["LINK_LOSS"] and row["detections"][0]["detected_s"] is not None
     assert {"mission.tlog", "telemetry.tlog", "summary.json"} <= set(row["files"])
+
+
+def test_a_damaged_row_file_means_run_it_again_not_a_traceback(tmp_path):
+    """row.json is the done marker: one that is not this task's row (a JSON list, a foreign or
+    hand-edited row) is not done (before the fix the resume ended in AttributeError / KeyError)."""
+    from ground.campaign.engine import read_row, task_dir
+
+    task = parse_spec(SMALL, tmp_path / "s.toml").tasks[0]
+    d = task_dir(tmp_path, task)
+    d.mkdir(parents=True)
+    for text in ("[]", '{"status": 5}', '{"task_id": "0123", "status": "ok", "label": "x"}', "{not json"):
+        (d / "row.json").write_text(text)
+        assert read_row(tmp_path, task) is None, text
+    good = {"task_id": task.id, "status": "error", "label": task.label, "error": "E"}
+    (d / "row.json").write_text(json.dumps(good))
+    assert read_row(tmp_path, task) == good

@@ -56,11 +56,17 @@ def task_dir(out: Path, task: Task) -> Path:
 
 
 def read_row(out: Path, task: Task) -> dict | None:
+    """The task's row if it is done; None (run it) when absent or not a row this engine wrote for
+    it (a damaged or hand-edited file, another task's row)."""
     p = task_dir(out, task) / "row.json"
     try:
-        return json.loads(p.read_text())
+        row = json.loads(p.read_text())
     except (OSError, ValueError):
         return None
+    if not (isinstance(row, dict) and row.get("task_id") == task.id and row.get("status") in ("ok", "error", LOST)
+            and isinstance(row.get("label"), str)):
+        return None
+    return row
 
 
 def store(out: Path, task: Task, result: dict) -> dict:
