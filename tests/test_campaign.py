@@ -403,3 +403,26 @@ def test_a_damaged_row_file_means_run_it_again_not_a_traceback(tmp_path):
     good = {"task_id": task.id, "status": "error", "label": task.label, "error": "E"}
     (d / "row.json").write_text(json.dumps(good))
     assert read_row(tmp_path, task) == good
+
+
+def test_a_local_cluster_starts_no_more_workers_than_tasks(tmp_path, monkeypatch):
+    """--workers 64 for 4 tasks spawned 64 processes (each loads numpy, numba and the model) for 60
+    to sit idle; the cluster is asked for as many as there are tasks to run."""
+    import distributed
+
+    from ground.campaign.engine import Progress, _run_dask
+
+    asked = {}
+
+    class Refused(Exception):
+        pass
+
+    def fake_cluster(n_workers, **kw):
+        asked["n"] = n_workers
+        raise Refused
+
+    monkeypatch.setattr(distributed, "LocalCluster", fake_cluster)
+    todo = list(parse_spec(SMALL, tmp_path / "s.toml").tasks)
+    with pytest.raises(Refused):
+        _run_dask(todo, None, 64, Progress(len(todo), 0, 0, quiet=True), lambda t, r: None)
+    assert asked["n"] == len(todo) == 4

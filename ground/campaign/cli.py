@@ -18,7 +18,8 @@ def configure(parser) -> None:
     parser.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                         help="submit to this existing Dask scheduler (default: start a local cluster)")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
-                        help="worker processes of the local cluster (default: the cores, at most 8); "
+                        help="worker processes of the local cluster (default: the cores, at most 8; never more than "
+                             "the tasks to run); "
                              "0 runs the tasks one after the other in this process")
     parser.add_argument("--quiet", action="store_true", help="no progress on the console")
 

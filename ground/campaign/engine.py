@@ -219,7 +219,8 @@ def run_campaign(campaign: Campaign, out, scheduler: str | None = None, workers:
     """Run every task of `campaign` not already done in `out`; the table and report after.
 
     `workers` = 0 runs serially in this process; otherwise a LocalCluster of `workers` processes
-    (default: the cores, at most 8), unless `scheduler` names an existing cluster's address.
+    (default: the cores, at most 8; never more than the tasks to run), unless `scheduler` names
+    an existing cluster's address.
     `on_row(row)` is called as each task lands (the tests use it)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -282,6 +283,7 @@ def _run_dask(todo: list[Task], scheduler: str | None, workers: int | None, prog
                           "distributed.scheduler.allowed-failures": 3}):
         if scheduler is None:
             n = workers if workers is not None else min(os.cpu_count() or 1, 8)
+            n = max(1, min(n, len(todo)))  # a worker with no task to run is a spawned process for nothing
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                    silence_logs=logging.ERROR)
             client = Client(cluster)
