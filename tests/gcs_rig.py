@@ -44,7 +44,7 @@ class Robot:
 
     def start(self) -> "Robot":
         # one time origin: the plant's vehicle time and the loop's wall clock start together (the
-        # loop's fault monitor judges IMU freshness by the samples' own stamps)
+        # recorded and reported times agree; the monitor itself counts an IMU sample at its arrival)
         self.loop.clock = WallClock()
         self.loop.start()  # its hello makes the plant start
         self.endpoint.start()

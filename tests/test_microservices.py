@@ -422,3 +422,24 @@ def test_a_parameter_file_whose_values_are_each_in_range_but_no_loop_together_is
             OnboardLoop(load_vehicle(), link, WallClock(), LoopConfig(parameter_file=str(f)), warm_up=False)
     finally:
         link.close()
+
+
+def test_request_data_stream_capabilities_and_uploads_as_the_readme_says(bare_loop):
+    """The README's table rows no other test reached: REQUEST_DATA_STREAM sets the streams it names,
+    REQUEST_AUTOPILOT_CAPABILITIES sends AUTOPILOT_VERSION after its ACK, an uploaded item is
+    NO_SPACE and a fence upload UNSUPPORTED."""
+    loop, sent = bare_loop
+    loop.handle(_decoded(mavlink.MAVLink_request_data_stream_message(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 2, 1)))
+    loop.handle(_decoded(mavlink.MAVLink_request_data_stream_message(1, 1, mavlink.MAV_DATA_STREAM_POSITION, 5, 1)))
+    assert loop.rates.rate_hz["ATTITUDE"] == 2.0 and loop.rates.rate_hz["LOCAL_POSITION_NED"] == 5.0
+    loop.handle(_decoded(mavlink.MAVLink_request_data_stream_message(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 2, 0)))
+    assert loop.rates.rate_hz["ATTITUDE"] == 0.0  # start_stop 0: stopped
+    sent.clear()
+    loop.handle(_decoded(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+                                                              0, 1, 0, 0, 0, 0, 0, 0)))
+    assert [m.get_type() for m in sent] == ["COMMAND_ACK", "AUTOPILOT_VERSION"]
+    sent.clear()
+    loop.handle(_decoded(mavlink.MAVLink_mission_item_int_message(1, 1, 0, 0, 16, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0)))
+    loop.handle(_decoded(mavlink.MAVLink_mission_count_message(1, 1, 2, mavlink.MAV_MISSION_TYPE_FENCE)))
+    assert [(m.get_type(), m.type) for m in sent] == [("MISSION_ACK", mavlink.MAV_MISSION_NO_SPACE),
+                                                      ("MISSION_ACK", mavlink.MAV_MISSION_UNSUPPORTED)]
