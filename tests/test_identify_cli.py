@@ -185,3 +185,26 @@ def test_resampling_a_trace_never_allocates_by_its_time_span():
     t[5] += 1e-4  # irregular: resampled
     with pytest.raises(ValueError, match="a gap in the recording"):
         fd.uniform(t, np.sin(t))
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--samples", "10000000000"], "--samples 10000000000: expected an even number 16-1000000"),
+    (["--samples", "1e10"], "--samples 1e10: expected an even number 16-1000000"),
+    (["--noise", "nan"], "--noise nan N: expected 0-1000 N"),
+    (["--noise", "-1"], "--noise -1 N: expected 0-1000 N"),
+    (["--rate", "10"], "--rate 10 Hz: expected 50-20000 Hz"),
+    (["--rate", "1e-300"], "--rate 1e-300 Hz: expected 50-20000 Hz"),
+    (["--rate", "1e300"], "--rate 1e+300 Hz: expected 50-20000 Hz"),
+    (["--peak-rate", "1e308"], "--peak-rate 1e+308 rad/s: expected 0.01-10 rad/s"),
+    (["--a", "1e9"], "--a 1e+09: expected 1-"),
+    (["--b", "0"], "--b 0: expected 1-"),
+], ids=lambda x: x if isinstance(x, str) else " ".join(x))
+def test_azimuth_arguments_out_of_range_get_one_line_and_exit_2(capsys, argv, message):
+    """Issue 15, second pass: --samples 1e10 ended in a MemoryError traceback (149 GiB), --noise nan
+    was accepted and produced NaN-free nonsense, --rate 10 gave scipy's "Initial guess is outside of
+    provided bounds" (the simulated rig at 10 Hz diverges), --rate 1e300 an IndexError traceback.
+    Each is refused before any work, in one line, with the range and its unit."""
+    assert main(["identify", "azimuth", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jetloop identify azimuth: error: "), err
+    assert message in err[0], err

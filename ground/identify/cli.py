@@ -114,7 +114,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--unit", type=int, default=0, help="unit on the simulated rig (default 0)")
     p.add_argument("--jet", type=float, default=0.75, help="propeller speed on the simulated rig as a "
                    "fraction of n_max (default 0.75, seed 004's 75 %% PWM)")
-    p.add_argument("--samples", type=int, default=18000, help="pseudo-impulse length N (default 18000)")
+    p.add_argument("--samples", default="18000", help="pseudo-impulse length N (default 18000)")
     p.add_argument("--rate", type=float, default=400.0, help="sample rate Hz (default 400; band = a rate / N)")
     p.add_argument("--a", type=float, default=450.0, help="power-spectrum parameter a of eq. 1 (default 450)")
     p.add_argument("--b", type=float, default=2100.0, help="expansion parameter b of eq. 3 (default 2100)")
@@ -272,6 +272,30 @@ def _need(args, *names):
     missing = [f"--{n.replace('_', '-')}" for n in names if getattr(args, n) is None]
     if missing:
         raise InputError(f"missing {', '.join(missing)} (needed to fit)")
+
+
+AZ_SAMPLES = (16, 1_000_000)  # the pseudo-impulse length N (16 MB per complex array at the top)
+AZ_RATE_HZ = (50.0, 20_000.0)  # below 50 Hz the simulated rig's fixed step diverges (10 Hz: NaN)
+AZ_PEAK_RATE_RAD_S = (0.01, 10.0)
+AZ_NOISE_N = (0.0, 1000.0)
+
+
+def _whole(text) -> int | None:
+    """An integer given as digits or as a whole float ("18000", "1.8e4"), or None."""
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        return None
+    return int(v) if math.isfinite(v) and v == int(v) and abs(v) < 2 ** 53 else None
+
+
+def _within(name: str, value, lo: float, hi: float, unit: str = "", why: str = "") -> float:
+    """One line naming the flag, its value with the unit, the range and why (NaN fails every test)."""
+    if value is None or not (lo <= value <= hi):
+        u = f" {unit}" if unit else ""
+        shown = f"{value:g}" if isinstance(value, (int, float)) else repr(value)
+        raise InputError(f"{name} {shown}{u}: expected {lo:g}-{hi:g}{u}" + (f" ({why})" if why else ""))
+    return float(value)
 
 
 def _positive(name: str, value) -> float:
@@ -718,10 +742,19 @@ def _azimuth(args, vehicle) -> int:
     bad = [r for r in rows if r not in az.ROWS]
     if bad or not rows:
         raise InputError(f"--rows: unknown row(s) {bad}; expected a comma-separated subset of {','.join(az.ROWS)}")
-    if args.samples < 16 or args.samples % 2:
-        raise InputError(f"--samples must be an even number >= 16, got {args.samples}")
-    for name in ("rate", "a", "b", "peak_rate"):
-        _positive(f"--{name.replace('_', '-')}", getattr(args, name))
+    # every number in a range before any work (issue 15, second pass: --samples 1e10 was a
+    # MemoryError of 149 GiB, --noise nan was flown, --rate 10 diverged the simulated rig and
+    # ended in scipy's "Initial guess is outside of provided bounds", --rate 1e300 an IndexError)
+    n = _whole(args.samples)
+    if n is None or not AZ_SAMPLES[0] <= n <= AZ_SAMPLES[1] or n % 2:
+        raise InputError(f"--samples {args.samples}: expected an even number {AZ_SAMPLES[0]}-{AZ_SAMPLES[1]} "
+                         f"(a 400 Hz rig record of at most {AZ_SAMPLES[1] / 400 / 60:.0f} min)")
+    args.samples = n
+    _within("--rate", args.rate, *AZ_RATE_HZ, "Hz", "a rig's force-sensor rate; seed 004: 400 Hz")
+    _within("--a", args.a, 1.0, n / 2, "", "below N/2, so the band a * rate / N stays under the Nyquist frequency")
+    _within("--b", args.b, 1.0, 1e7, "", "seed 004: 2100")
+    _within("--peak-rate", args.peak_rate, *AZ_PEAK_RATE_RAD_S, "rad/s", "a joint's rate")
+    _within("--noise", args.noise, *AZ_NOISE_N, "N", "the force sensor's noise")
     if not 0 < args.jet <= 1:
         raise InputError(f"--jet must be a fraction of n_max in (0, 1], got {args.jet}")
     if not 0 <= args.unit < vehicle.n_units:
