@@ -332,7 +332,7 @@ class Microservices:
         except (ValueError, TypeError, AttributeError) as exc:
             self.params.values[name] = old
             self._apply({P.BY_NAME[name].group})
-            return f"{name}: {exc}"[:120]
+            return (str(exc) if str(exc).startswith(name) else f"{name}: {exc}")[:120]
         return None
 
     def _apply(self, groups: set) -> None:
@@ -362,6 +362,9 @@ class Microservices:
             from dataclasses import replace
 
             t = values["FS_IMU_TIMEOUT"]
+            skew = loop.config.max_stamp_skew_s
+            if not t > skew:  # LoopConfig's rule: a stamp accepted ahead must not starve the failsafe
+                raise ValueError(f"FS_IMU_TIMEOUT {t:g}: expected > stamp skew {skew:g} s")  # fits STATUSTEXT
             loop.fs_state = replace(loop.fs_state, imu_timeout_s=t)
             mon = loop.monitor
             if mon is not None and hasattr(mon.config, "imu_timeout_s"):

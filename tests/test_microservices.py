@@ -443,3 +443,25 @@ def test_request_data_stream_capabilities_and_uploads_as_the_readme_says(bare_lo
     loop.handle(_decoded(mavlink.MAVLink_mission_count_message(1, 1, 2, mavlink.MAV_MISSION_TYPE_FENCE)))
     assert [(m.get_type(), m.type) for m in sent] == [("MISSION_ACK", mavlink.MAV_MISSION_NO_SPACE),
                                                       ("MISSION_ACK", mavlink.MAV_MISSION_UNSUPPORTED)]
+
+
+def test_an_imu_timeout_not_above_the_stamp_skew_is_refused_live_and_from_the_file(bare_loop, tmp_path):
+    """LoopConfig refuses max_stamp_skew_s >= imu_timeout_s (a stamp accepted ahead would starve
+    the failsafe); FS_IMU_TIMEOUT's range (0.05-5 s) let a PARAM_SET or the parameter file undo it
+    (before the fix 0.1 s was flown beside the 0.2 s skew)."""
+    loop, sent = bare_loop
+    loop.handle(_decoded(mavlink.MAVLink_param_set_message(1, 1, b"FS_IMU_TIMEOUT", 0.1, 9)))
+    assert sent[0].get_type() == "PARAM_VALUE" and sent[0].param_value == pytest.approx(0.3)  # the old one echoed
+    assert loop.fs_state.imu_timeout_s == pytest.approx(0.3) and loop.services.params.values["FS_IMU_TIMEOUT"] == 0.3
+    text = "".join(m.text for m in sent if m.get_type() == "STATUSTEXT")
+    assert text == "FS_IMU_TIMEOUT 0.1: expected > stamp skew 0.2 s", text  # STATUSTEXT holds 50
+    loop.handle(_decoded(mavlink.MAVLink_param_set_message(1, 1, b"FS_IMU_TIMEOUT", 0.5, 9)))
+    assert loop.fs_state.imu_timeout_s == pytest.approx(0.5)  # above the skew: flown
+    f = tmp_path / "v.params"
+    f.write_text("FS_IMU_TIMEOUT 0.1\n")
+    link = Link("udpin:127.0.0.1:0")
+    try:
+        with pytest.raises(P.ParameterFileError, match=r"v.params: FS_IMU_TIMEOUT 0.1: expected > stamp skew 0.2 s"):
+            OnboardLoop(load_vehicle(), link, WallClock(), LoopConfig(parameter_file=str(f)), warm_up=False)
+    finally:
+        link.close()
