@@ -171,6 +171,16 @@ def test_bad_command_lines_are_one_line(tmp_path, capsys):
     assert "missing.toml: cannot read campaign spec" in err and len(err.strip().splitlines()) == 1
 
 
+def test_a_tls_scheduler_without_tls_set_up_is_one_line(tmp_path, capsys):
+    """--scheduler accepts tls://; with no TLS in Dask's config distributed raises TypeError at once
+    (a traceback before the fix)."""
+    spec = write_spec(tmp_path, SMALL)
+    rc = main(["campaign", str(spec), "--out", str(tmp_path / "o"), "--scheduler", "tls://127.0.0.1:1", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "cannot reach the scheduler tls://127.0.0.1:1: tls:// needs Dask's TLS configuration" in err, err
+
+
 @pytest.mark.slow  # the client waits its 20 s connect timeout
 def test_no_scheduler_there_is_one_line(tmp_path, capsys):
     spec = write_spec(tmp_path, SMALL)

@@ -289,7 +289,11 @@ def _run_dask(todo: list[Task], scheduler: str | None, workers: int | None, prog
             client = Client(cluster)
             mode = f"local cluster of {n} worker process{'es' if n != 1 else ''}"
         else:
-            client = Client(scheduler, timeout="20s")
+            try:
+                client = Client(scheduler, timeout="20s")
+            except TypeError as exc:  # tls:// with no TLS set up in Dask's config: distributed raises TypeError
+                raise ConnectionError(f"{scheduler.partition('://')[0]}:// needs Dask's TLS configuration "
+                                      f"(distributed.comm.tls.*): {str(exc)[:160]}") from None
             info = client.scheduler_info()
             mode = f"scheduler {scheduler} ({len(info.get('workers', {}))} workers)"
         try:
