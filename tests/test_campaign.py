@@ -436,3 +436,41 @@ def test_a_local_cluster_starts_no_more_workers_than_tasks(tmp_path, monkeypatch
     with pytest.raises(Refused):
         _run_dask(todo, None, 64, Progress(len(todo), 0, 0, quiet=True), lambda t, r: None)
     assert asked["n"] == len(todo) == 4
+
+
+@pytest.mark.slow
+def test_the_vehicle_file_goes_to_the_cluster_once_not_with_every_task(tmp_path, monkeypatch, reference_text):
+    """Each task's inputs carried the vehicle file's text (up to 1 MB): a million-task spec put a
+    million copies in the scheduler's memory. Now one task holds it and the others depend on it;
+    the figures and recordings are those of the serial run."""
+    import pickle
+
+    import distributed
+
+    vehicle = tmp_path / "v.toml"
+    vehicle.write_text(reference_text)
+    spec = write_spec(tmp_path, "kind = 'missions'\nvehicle = 'v.toml'\n[missions]\nmission = 'hold'\n"
+                                "duration_s = 2.0\nseeds = [0, 1, 2]\n")
+    campaign = load_spec(spec)
+    carried = []
+    submit = distributed.Client.submit
+
+    def counting_submit(self, func, *args, **kw):
+        carried.append(reference_text in pickle.dumps(args).decode("latin-1"))
+        return submit(self, func, *args, **kw)
+
+    monkeypatch.setattr(distributed.Client, "submit", counting_submit)
+    outcome = run_campaign(campaign, tmp_path / "local", workers=1, quiet=True, report=False)
+    assert outcome.counts == {"ok": 3, "error": 0, "lost": 0}
+    assert len(carried) == 4 and sum(carried) == 1  # three tasks and the vehicle's holder
+    run_campaign(campaign, tmp_path / "serial", workers=0, quiet=True, report=False)
+    a, b = by_id(read_table(tmp_path / "serial")), by_id(read_table(tmp_path / "local"))
+    assert a.keys() == b.keys() == {t.id for t in campaign.tasks}
+    def same(x, y):  # a 2 s hold has no settled window: some figures are NaN on both
+        return x == y or (isinstance(x, float) and isinstance(y, float) and x != x and y != y)
+
+    for tid in a:
+        assert all(same(a[tid][k], b[tid][k]) for k in FIGURES), (a[tid], b[tid])
+        assert a[tid]["control_steps"] == 200
+        assert (tmp_path / "serial" / "tasks" / tid / "mission.tlog").read_bytes() == \
+            (tmp_path / "local" / "tasks" / tid / "mission.tlog").read_bytes()

@@ -16,7 +16,9 @@ loop and the plant hold the GIL) when no scheduler is given, else a `Client` of 
 `tcp://HOST:PORT` started with `dask scheduler` / `dask worker`. Worker processes are spawned,
 never forked (numba's OpenMP layer kills a child forked after it ran, hil/batch.py), and each
 loads the compiled model from numba's on-disk cache on its first task. A worker that dies
-mid-task costs that task a retry on another worker (the scheduler's allowed-failures).
+mid-task costs that task a retry on another worker (the scheduler's allowed-failures). A vehicle
+file's text goes to the cluster once, held by one task the others depend on (`_same`), not in
+every task's inputs.
 """
 
 from __future__ import annotations
@@ -272,6 +274,17 @@ def run_campaign(campaign: Campaign, out, scheduler: str | None = None, workers:
     return outcome
 
 
+def _same(x):
+    """A task that holds a value (the vehicle file's text) for the tasks that need it: recomputed
+    from its own spec if the worker holding it dies (scattered data would be lost with it)."""
+    return x
+
+
+def _execute_with_vehicle(kind: str, inputs: dict, vehicle_toml: str) -> dict:
+    """`execute` of a task whose vehicle text came as a dependency (the same inputs, so the same row)."""
+    return execute(kind, {**inputs, "vehicle_toml": vehicle_toml})
+
+
 def _run_dask(todo: list[Task], scheduler: str | None, workers: int | None, prog: Progress, landed) -> str:
     import logging
 
@@ -301,9 +314,20 @@ def _run_dask(todo: list[Task], scheduler: str | None, workers: int | None, prog
             # the costliest first (submitted first, at a higher priority), so a long case never starts
             # last and holds up the end; equal costs in the spec's order
             order = sorted(todo, key=lambda t: -t.cost)
+            vehicles: dict = {}  # the vehicle file's text -> the one task that holds it
             for r, t in enumerate(order):
-                fut = client.submit(execute, t.kind, t.inputs, key=f"jetloop-{t.kind}-{t.id}", pure=False,
-                                    priority=len(order) - r)
+                key, priority = f"jetloop-{t.kind}-{t.id}", len(order) - r
+                text = t.inputs.get("vehicle_toml")
+                if text is None:
+                    fut = client.submit(execute, t.kind, t.inputs, key=key, pure=False, priority=priority)
+                else:  # the text (up to 1 MB) travels once, not with each of a million tasks
+                    if text not in vehicles:
+                        digest = hashlib.sha256(text.encode()).hexdigest()[:16]
+                        vehicles[text] = client.submit(_same, text, key=f"jetloop-vehicle-{digest}", pure=False,
+                                                       priority=len(order) + 1)
+                    rest = {k: v for k, v in t.inputs.items() if k != "vehicle_toml"}
+                    fut = client.submit(_execute_with_vehicle, t.kind, rest, vehicles[text], key=key, pure=False,
+                                        priority=priority)
                 by_key[fut.key] = (fut, t)
             pending = {f for f, _ in by_key.values()}
             while pending:
