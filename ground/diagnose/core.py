@@ -243,7 +243,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                     + (["imu_bias"] if bias_named else []))
         _say(progress, f"rejected {', '.join(rejected)}: the held-out fit is not better than the nominal's")
         alternatives = ([("imu_bias", None)] if bias_named and (chosen or unknown is not None) else []) + [
-            (f.candidate.effect, f) for f in single if f not in chosen]
+            (f.candidate.effect, f) for f in single if all(f is not c for c in chosen)]  # (Fit holds arrays: ==)
         chosen, final, unknown, bias_named = [], None, None, False
         final_res = res0
         shots = _shoot_holdout(ev, traj, split, ev.base, ev.base, None, mdiag)
