@@ -16,7 +16,9 @@ from pathlib import Path
 def read_bounded(path, limit: int) -> bytes:
     """The bytes of `path` if it is a regular file of at most `limit` bytes."""
     path = Path(path)
-    with open(path, "rb") as f:
+    # opened without blocking: open() of a FIFO with no writer would wait for one forever
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    with os.fdopen(fd, "rb") as f:
         st = os.fstat(f.fileno())
         if not stat.S_ISREG(st.st_mode):
             raise OSError(errno.EINVAL, "not a regular file (a device, pipe or directory)", str(path))

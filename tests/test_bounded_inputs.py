@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import os
+import threading
 
 import pytest
 
@@ -33,6 +34,27 @@ def test_read_bounded_refuses_devices_pipes_and_oversized_files(tmp_path):
             read_bounded(fifo, 10)
     finally:
         os.close(w)
+
+
+def test_read_bounded_does_not_wait_for_a_fifo_writer(tmp_path):
+    """A FIFO nobody writes to: open() alone would block for ever (found by the review)."""
+    fifo = tmp_path / "lonely"
+    os.mkfifo(fifo)
+    out = []
+
+    def read():
+        try:
+            read_bounded(fifo, 10)
+        except OSError as exc:
+            out.append(exc)
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+    t.join(5.0)
+    if t.is_alive():  # unblock the thread before failing
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        pytest.fail("read_bounded waited for a writer on a FIFO")
+    assert out and "not a regular file" in out[0].strerror
 
 
 @pytest.mark.parametrize("argv", [
