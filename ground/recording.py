@@ -1027,16 +1027,150 @@ def _damaged_fmts(data: bytes) -> list:
     return out
 
 
+# The streams read from a dataflash log, and the columns each needs (_read_dataflash_file).
+DF_NEEDED = {"IMU": ("TimeUS", "I", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ"),
+             "BARO": ("TimeUS", "I", "Press"), "RCOU": ("TimeUS",) + tuple(f"C{c}" for c in range(1, 15)),
+             "ATT": ("TimeUS", "Roll", "Pitch", "Yaw"), "ESC": ("TimeUS", "Instance", "RPM")}
+FMT_HEADER = b"\xa3\x95\x80"
+
+
+def _one_bit(a: bytes, b: bytes) -> bool:
+    return len(a) == len(b) and sum(bin(x ^ y).count("1") for x, y in zip(a, b)) == 1
+
+
+def _fmt_size(fmt: str) -> int | None:
+    """Bytes of a record of this format string (header included), or None if a character is unknown."""
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+    try:
+        return 3 + struct.calcsize("<" + "".join(FORMAT_TO_STRUCT[c][0] for c in fmt))
+    except (KeyError, struct.error):
+        return None
+
+
+def _framing(arr: np.ndarray, heads_at: np.ndarray, t: int, length: int) -> float:
+    """The share of the records headed A3 95 t that another record header follows at +length."""
+    p = heads_at[arr[heads_at + 2] == t]
+    p = p[p + length + 1 < len(arr)]
+    if not len(p) or length < 3:
+        return 0.0
+    return float(np.mean((arr[p + length] == 0xA3) & (arr[p + length + 1] == 0x95)))
+
+
+def _repair_fmts(data: bytes) -> tuple:
+    """A dataflash log with its FMT records mended where one flipped bit shows (issue 15, second
+    pass: one flipped bit in the IMU's FMT record lost the IMU stream in 495 of its 712 bits).
+    An FMT record is redundant in itself: its length byte is its format's size, it has one column
+    per format character, its name and columns are ASCII words, and its type id heads the
+    records that follow. So, for the streams read (`DF_NEEDED`): a header one bit from 0xA3 0x95
+    0x80 before an otherwise whole FMT record; a name one bit from a wanted name no other FMT
+    has; a length byte that disagrees with its format (or a format character one bit from the one
+    that agrees with the length); a column name one bit from a needed one that is missing, or a
+    character one bit from the comma that gives one column per format character; a type id no
+    record uses, one bit from a type that heads records and has no FMT. Returns (bytes, repaired)."""
+    buf = bytearray(data)
+    n = len(buf)
+    arr = np.frombuffer(bytes(buf), np.uint8)
+    if n < 89:
+        return bytes(buf), 0
+    # candidate FMT records: a header within one bit of 0xA3 0x95 0x80
+    h0, h1, h2 = arr[:-2] == 0xA3, arr[1:-1] == 0x95, arr[2:] == 0x80
+    close = (h0.astype(np.int8) + h1 + h2) >= 2
+    starts = [int(i) for i in np.nonzero(close[: n - 88])[0] if _one_bit(bytes(buf[i:i + 3]), FMT_HEADER)
+              or bytes(buf[i:i + 3]) == FMT_HEADER]
+    # record headers per type id (A3 95 t), to tell a type id in use from a flipped one
+    heads_at = np.nonzero(h0 & h1)[0]
+    heads = np.bincount(arr[heads_at + 2], minlength=256)
+    fmts = {}
+    for i in starts:
+        name = bytes(buf[i + 5:i + 9]).split(b"\0", 1)[0]
+        fmt = bytes(buf[i + 9:i + 25]).split(b"\0", 1)[0]
+        cols = bytes(buf[i + 25:i + 89]).split(b"\0", 1)[0]
+        exact = bytes(buf[i:i + 3]) == FMT_HEADER
+        whole = (name.isalnum() and name.isupper() or name.isdigit()) and fmt and cols and \
+            _fmt_size(fmt.decode("latin-1")) == buf[i + 4] and len(cols.split(b",")) == len(fmt)
+        if exact or whole:  # a header flip is believed only before an otherwise whole record
+            fmts[i] = (exact, name, fmt, cols)
+    names = {v[1] for v in fmts.values()}
+    types = {int(buf[i + 3]) for i in fmts}
+    repaired = 0
+    for i, (exact, name, fmt, cols) in fmts.items():
+        before = bytes(buf[i:i + 89])
+        if not exact:
+            buf[i:i + 3] = FMT_HEADER
+        wanted = [w for w in DF_NEEDED if w.encode() not in names and _one_bit(name.ljust(4, b"\0"), w.encode().ljust(4, b"\0"))]
+        if len(wanted) == 1:
+            name = wanted[0].encode()
+            buf[i + 5:i + 9] = name.ljust(4, b"\0")
+        if name.decode("latin-1") not in DF_NEEDED:
+            buf[i:i + 89] = before  # only what is read is mended (a mended MULT made DFReader fail on its records)
+            continue
+        f = fmt.decode("latin-1")
+        size = _fmt_size(f)
+        if size != buf[i + 4]:  # the length byte or a format character flipped: the records frame by the true length
+            t = int(buf[i + 3])
+            fixes = [(k, bit) for k in range(len(f)) for bit in range(8)
+                     if _fmt_size(f[:k] + chr(ord(f[k]) ^ (1 << bit)) + f[k + 1:]) == buf[i + 4]]
+            by_length = _framing(arr, heads_at, t, int(buf[i + 4]))
+            by_format = _framing(arr, heads_at, t, size) if size is not None else 0.0
+            if size is not None and len(cols.split(b",")) == len(f) and by_format > max(by_length, 0.5):
+                buf[i + 4] = size  # the length byte flipped
+            elif len(fixes) == 1 and by_length > 0.5:
+                k, bit = fixes[0]
+                buf[i + 9 + k] ^= 1 << bit
+                f = f[:k] + chr(ord(f[k]) ^ (1 << bit)) + f[k + 1:]
+        need = DF_NEEDED.get(name.decode("latin-1"))
+        if need is not None:
+            c = cols.decode("latin-1")
+            parts = c.split(",")
+            if len(parts) != len(f):  # a comma flipped (or flipped into one)
+                cands = [k for k in range(len(c)) for bit in range(8)
+                         if len((c[:k] + chr(ord(c[k]) ^ (1 << bit)) + c[k + 1:]).split(",")) == len(f)
+                         and all(p.isidentifier() for p in (c[:k] + chr(ord(c[k]) ^ (1 << bit)) + c[k + 1:]).split(","))]
+                if len(set(cands)) == 1:
+                    k = cands[0]
+                    c = c[:k] + "," + c[k + 1:] if c[k] != "," else c
+                    if c[k] == ",":
+                        buf[i + 25 + k] = ord(",")
+                    parts = c.split(",")
+            missing = [x for x in need if x not in parts]
+            for j, p in enumerate(parts):
+                if p in need:
+                    continue  # a whole needed column is never the one that flipped
+                fix = [x for x in missing if _one_bit(p.encode("latin-1"), x.encode())]
+                if len(fix) == 1:
+                    at = i + 25 + sum(len(q) + 1 for q in parts[:j])
+                    buf[at:at + len(p)] = fix[0].encode()
+                    missing.remove(fix[0])
+        repaired += bytes(buf[i:i + 89]) != before
+    claims = np.bincount([int(buf[i + 3]) for i in fmts], minlength=256)
+    # a flipped type id: records of a type no FMT describes, and one FMT (of a type no record
+    # uses, one bit away) whose length frames them
+    for o in np.nonzero(heads)[0]:
+        if int(o) in types:
+            continue
+        cands = [i for i in fmts if bytes(buf[i + 5:i + 9]).split(b"\0", 1)[0].decode("latin-1") in DF_NEEDED
+                 and (heads[buf[i + 3]] == 0 or claims[buf[i + 3]] > 1)  # unused, or another FMT's type
+                 and _one_bit(bytes([buf[i + 3]]), bytes([int(o)]))
+                 and _framing(arr, heads_at, int(o), int(buf[i + 4])) > 0.5]
+        if len(cands) == 1:
+            buf[cands[0] + 3] = int(o)
+            types.add(int(o))
+            repaired += 1
+    return bytes(buf), repaired
+
+
 def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
     import tempfile
 
     from pymavlink import DFReader
 
-    damaged = _damaged_fmts(data)
+    mended, repaired = _repair_fmts(data)
+    damaged = _damaged_fmts(mended)
     read_path = str(path)
     tmp = None
-    if damaged:  # read a copy whose damaged FMT records do not frame (their bytes are skipped)
-        fixed = bytearray(data)
+    if damaged or repaired:  # read a copy: FMT records mended, those still damaged not framed (skipped)
+        fixed = bytearray(mended)
         for i in damaged:
             fixed[i + 2] = 0x00
         tmp = tempfile.NamedTemporaryFile(suffix=".bin", delete=False)
@@ -1044,7 +1178,17 @@ def _read_dataflash_quietly(path: Path, data: bytes) -> Recording:
         tmp.close()
         read_path = tmp.name
     try:
-        return _read_dataflash_file(path, read_path, data, len(damaged))
+        try:
+            return _read_dataflash_file(path, read_path, data, len(damaged) + repaired)
+        except RecordingError:
+            if not repaired:
+                raise
+            # a mended record the log's other damage makes unreadable: as without the mending
+            fixed = bytearray(data)
+            for i in _damaged_fmts(data):
+                fixed[i + 2] = 0x00
+            Path(tmp.name).write_bytes(bytes(fixed))
+            return _read_dataflash_file(path, read_path, data, len(_damaged_fmts(data)))
     finally:
         if tmp is not None:
             os.unlink(tmp.name)
