@@ -22,8 +22,10 @@ class StreamRates:
     def handle(self, msg):
         if msg.get_type() != "COMMAND_LONG" or int(msg.command) != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             return None
+        if not (math.isfinite(msg.param1) and math.isfinite(msg.param2)):  # int(round(inf)) raises
+            return mavlink.MAV_RESULT_DENIED
         cls = mavlink.mavlink_map.get(int(round(msg.param1)))
-        if cls is None or not math.isfinite(msg.param2):
+        if cls is None:
             return mavlink.MAV_RESULT_DENIED
         name, interval = cls.msgname, float(msg.param2)
         if interval < 0:

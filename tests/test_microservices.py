@@ -465,3 +465,16 @@ def test_an_imu_timeout_not_above_the_stamp_skew_is_refused_live_and_from_the_fi
             OnboardLoop(load_vehicle(), link, WallClock(), LoopConfig(parameter_file=str(f)), warm_up=False)
     finally:
         link.close()
+
+
+@pytest.mark.parametrize("message_id", [float("inf"), float("-inf"), float("nan")])
+def test_set_message_interval_for_an_infinite_or_nan_message_id_is_acked_denied(bare_loop, message_id):
+    """Every COMMAND_LONG gets a COMMAND_ACK (README): before the fix int(round(inf)) raised
+    OverflowError (NaN: ValueError), counted as a rejected input and dropped with no ACK."""
+    loop, sent = bare_loop
+    before = loop.stats.rejected_inputs
+    loop.handle(_decoded(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                              message_id, 100_000, 0, 0, 0, 0, 0)))
+    acks = [m for m in sent if m.get_type() == "COMMAND_ACK"]
+    assert [(a.command, a.result) for a in acks] == [(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_DENIED)]
+    assert loop.stats.rejected_inputs == before
