@@ -540,10 +540,35 @@ def _check_full_rank(v: Vehicle, err: "_Errors") -> None:
             + ("; fixed thrusters must push along at least six independent force-moment directions" if v.fixed else ""))
 
 
+BUOYANCY_RATIO = (0.5, 2.0)  # rho V / m of a vehicle that dives and surfaces on its thrusters
+
+
+def _check_plausible(v: Vehicle, err: "_Errors") -> None:
+    """What each key's range cannot see (issue 15, second pass: thrust coefficients of zero, or a
+    1000 kg vehicle of the stock 6.65 litres, passed): buoyancy against weight rho V / m within
+    `BUOYANCY_RATIO`, and the jets' thrust coefficient K(J) (seed 000 eq. 15) positive over the
+    advance ratios of the fit (`j_range`; a fixed-thruster vehicle's stand-in has no jets)."""
+    ratio = v.environment.rho * v.body.volume / v.body.mass
+    if not BUOYANCY_RATIO[0] <= ratio <= BUOYANCY_RATIO[1]:
+        err.lines.append(f"body.mass {v.body.mass:g} kg with body.volume {v.body.volume:g} m^3: buoyancy/weight "
+                         f"rho V / m {ratio:.3g}: expected {BUOYANCY_RATIO[0]:g}-{BUOYANCY_RATIO[1]:g} "
+                         "(near neutral); grams? litres?")
+    if v.n_jets:
+        k0, k1, k2 = v.thruster.kt
+        lo, hi = v.thruster.j_range
+        js = [lo, hi] + ([-k1 / (2 * k2)] if k2 > 0 and lo < -k1 / (2 * k2) < hi else [])
+        j = min(js, key=lambda x: k0 + k1 * x + k2 * x * x)
+        k = k0 + k1 * j + k2 * j * j
+        if not k > 0:
+            err.lines.append(f"thruster.kt [{k0:g}, {k1:g}, {k2:g}]: K(J) {k:.3g} at J = {j:.3g}: expected "
+                             f"K(J) > 0 over j_range [{lo:g}, {hi:g}] (a jet that pushes nothing, or backwards)")
+
+
 def _check_consistency(v: Vehicle, err: "_Errors") -> None:
     _check_ranges(v, err)
     if not err.lines:
         _check_full_rank(v, err)
+        _check_plausible(v, err)
     n = v.n_jets
     for key in ("jet_channels", "azimuth_channels", "elevation_channels"):
         if len(getattr(v.pwm, key)) != n:

@@ -317,6 +317,15 @@ ABSURD = [
      "effects.azimuth_transient.gain_per_newton 1e+300 1/N: expected 0-1 1/N"),
     ("n_max = 83.3 ", "n_max = 5000.0 ", "thruster.n_max 5000 rev/s: expected 0.1-2000 rev/s; rpm? expected rev/s"),
     ("volume = 0.00665 ", "volume = 6.65 ", "body.volume 6.65 m^3: expected 1e-05-2 m^3; litres?"),
+    # issue 15, second pass: each key in its range, together absurd
+    ("mass = 6.5 ", "mass = 1000.0 ", "body.mass 1000 kg with body.volume 0.00665 m^3: buoyancy/weight rho V / m "
+     "0.00665: expected 0.5-2 (near neutral); grams? litres?"),
+    ("kt = [0.350165, -0.30192, 0.20207]", "kt = [0.0, 0.0, 0.0]",
+     "thruster.kt [0, 0, 0]: K(J) 0 at J = 0: expected K(J) > 0 over j_range [0, 0.54] (a jet that pushes "
+     "nothing, or backwards)"),
+    ("kt = [0.350165, -0.30192, 0.20207]", "kt = [0.350165, -1.30192, 0.20207]",
+     "thruster.kt [0.350165, -1.30192, 0.20207]: K(J) -0.294 at J = 0.54: expected K(J) > 0 over j_range [0, 0.54] "
+     "(a jet that pushes nothing, or backwards)"),
 ]
 
 
