@@ -650,6 +650,8 @@ class OnboardLoop:
         What does not decode (NaN, inf, a field out of range) is counted and dropped."""
         name = m.get_type()
         self._rx_link = link
+        if self.services.for_another_component(m):  # companion: the autopilot's command, left to it
+            return
         verdict = self.gate.admit(m, link)  # signing, sources, envelope, arm/mode params: counted there
         for reply in verdict.replies:  # COMMAND_ACK DENIED / STATUSTEXT "setpoint refused: ..."
             (self.ground or self.link).send(reply)

@@ -214,6 +214,14 @@ class Microservices:
             return tc == self.identity.component
         return tc in (MAV_COMP_ID_ONBOARD_COMPUTER, MAV_COMP_ID_AUTOPILOT1) and self.identity.role == "vehicle"
 
+    def for_another_component(self, m) -> bool:
+        """A companion's (191 beside a real autopilot) commands are those addressed to it or to
+        every component (0): one for the autopilot (1) or any other component is theirs, neither
+        carried out nor acknowledged here."""
+        if self.identity.role != "companion" or m.get_type() not in ("COMMAND_LONG", "COMMAND_INT"):
+            return False
+        return getattr(m, "target_component", 0) not in (0, MAV_COMP_ID_ONBOARD_COMPUTER)
+
     # -- messages -------------------------------------------------------------------------------
     def _out(self, link: str):
         lp = self.loop

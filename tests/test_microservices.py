@@ -102,6 +102,48 @@ def test_beside_an_ardupilot_heartbeat_the_loop_becomes_its_companion_191():
         autopilot.close()
 
 
+def test_a_companion_leaves_commands_addressed_to_the_autopilot_to_the_autopilot():
+    """Beside a real autopilot (companion, 191) a command for component 1 is the autopilot's: not
+    carried out, not acked from 191 (before the fix the loop armed, changed mode and answered
+    AUTOPILOT_VERSION for the autopilot, and acked them all); addressed to 191 or broadcast (0) it
+    is the loop's, as before."""
+    main = Link("udpin:127.0.0.1:0", 1, 191)
+    autopilot = Link(f"udpout:127.0.0.1:{main.local_address[1]}", 1, 1)
+    s = Station(main=main)
+    cl, ci = mavlink.MAVLink_command_long_message, mavlink.MAVLink_command_int_message
+    try:
+        autopilot.send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_SUBMARINE, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                         0, 19, mavlink.MAV_STATE_STANDBY, 3))
+        s.wait("HEARTBEAT", lambda m: m.get_srcComponent() == 191, timeout_s=3.0)
+        mode = s.loop.mode
+        s.send(cl(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 2, 0, 0, 0, 0, 0))
+        s.send(ci(1, 1, 0, mavlink.MAV_CMD_DO_SET_MODE, 0, 0, 1, 19, 0, 0, 0, 0, 0))
+        s.send(cl(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+        s.send(cl(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0.5, 0, 0, 0, 0, 0, 0))  # the gate's DENIED too
+        s.send(cl(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0))
+        s.send(cl(1, 1, mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 0, 1, 0, 0, 0, 0, 0, 0))
+        heard, deadline = [], time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            m = s.gcs.recv(0.05)
+            if m is not None and m.get_type() in ("COMMAND_ACK", "AUTOPILOT_VERSION"):
+                heard.append(m)
+        assert not heard
+        assert s.loop.mode == mode and not s.loop.armed and s.loop.stats.arm_refusals == 0
+        # addressed to the companion, or to every component: the loop's, answered as before
+        s.send(cl(1, 191, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 2, 0, 0, 0, 0, 0))
+        assert s.ack(mavlink.MAV_CMD_DO_SET_MODE).result == mavlink.MAV_RESULT_ACCEPTED
+        assert s.loop.mode == 2
+        s.send(ci(1, 0, 0, mavlink.MAV_CMD_DO_SET_MODE, 0, 0, 1, 19, 0, 0, 0, 0, 0))
+        assert s.ack(mavlink.MAV_CMD_DO_SET_MODE).result == mavlink.MAV_RESULT_ACCEPTED
+        s.send(cl(1, 0, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+        assert s.ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM).result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # no IMU
+        s.send(cl(1, 191, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0))
+        assert s.wait("AUTOPILOT_VERSION")
+    finally:
+        s.close()
+        autopilot.close()
+
+
 # -- parameters ------------------------------------------------------------------------------------
 
 def test_param_request_list_gives_every_parameter_once_with_index_and_count(station):
