@@ -17,7 +17,8 @@ each such message here; onboard.loop keeps only the flying):
   the next control step, is written to the parameter file and echoed in PARAM_VALUE; a value out of
   range is refused, the old value echoed and a STATUSTEXT says why. PARAM_SET is a command
   (onboard.signing.COMMAND_MESSAGES): with signing on, unsigned ones are refused by the gate.
-- **Commands**: every COMMAND_LONG and COMMAND_INT gets a COMMAND_ACK (the loop's `_on_command`;
+- **Commands**: every COMMAND_LONG and COMMAND_INT gets a COMMAND_ACK (a companion's: those
+  addressed to 191 or 0, `for_another_component`) (the loop's `_on_command`;
   COMMAND_INT is read as the same command). Here: MAV_CMD_REQUEST_MESSAGE (AUTOPILOT_VERSION,
   HEARTBEAT, SYS_STATUS, SYSTEM_TIME, ATTITUDE, LOCAL_POSITION_NED, MESSAGE_INTERVAL: the ones the
   robot can fill truthfully; any other DENIED), REQUEST_AUTOPILOT_CAPABILITIES, GET_MESSAGE_INTERVAL.
