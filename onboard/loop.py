@@ -598,16 +598,20 @@ class OnboardLoop:
 
     def run(self, duration_s: float | None = None, stop=None, idle_exit_s: float | None = None) -> str:
         """Poll until `stop()` is true, the clock reaches `duration_s` (clock time; the last tick
-        before it), or nothing arrives for `idle_exit_s` of wall time. Returns why it stopped."""
+        before it), or nothing arrives for `idle_exit_s` of wall time. Returns why it stopped.
+        Parameters set and not yet written (they are, at most once a second) are written then."""
         self.start()
-        while True:
-            if stop is not None and stop():
-                return "stopped"
-            if duration_s is not None and self.clock.now() >= duration_s - 0.5 * self.period_s:
-                return "duration reached"
-            if idle_exit_s is not None and time.monotonic() - self._last_rx_wall > idle_exit_s:
-                return f"nothing received for {idle_exit_s:g} s"
-            self.poll()
+        try:
+            while True:
+                if stop is not None and stop():
+                    return "stopped"
+                if duration_s is not None and self.clock.now() >= duration_s - 0.5 * self.period_s:
+                    return "duration reached"
+                if idle_exit_s is not None and time.monotonic() - self._last_rx_wall > idle_exit_s:
+                    return f"nothing received for {idle_exit_s:g} s"
+                self.poll()
+        finally:
+            self.services.save_params(force=True)
 
     def poll(self) -> None:
         """Step if a control tick is due, else wait (at most until the tick) for one message."""

@@ -14,7 +14,8 @@ each such message here; onboard.loop keeps only the flying):
   main link beside a plant or an autopilot (which own component 1 there) it is always 191.
 - **Parameters** (onboard.params is the table): PARAM_REQUEST_LIST -> every PARAM_VALUE with its
   index and the count; PARAM_REQUEST_READ by name or index; PARAM_SET -> the value takes effect at
-  the next control step, is written to the parameter file and echoed in PARAM_VALUE; a value out of
+  the next control step, is written to the parameter file (at most once a second, and when the loop
+  stops) and echoed in PARAM_VALUE; a value out of
   range is refused, the old value echoed and a STATUSTEXT says why. PARAM_SET is a command
   (onboard.signing.COMMAND_MESSAGES): with signing on, unsigned ones are refused by the gate.
 - **Commands**: every COMMAND_LONG and COMMAND_INT gets a COMMAND_ACK (a companion's: those
@@ -496,6 +497,14 @@ class Microservices:
         """Sent with the HEARTBEAT: SYSTEM_TIME (to a ground station, never to a plant or autopilot)."""
         if out is not self.loop.link or not self.identity.component1_taken:
             out.send(self.system_time(t))
+        self.save_params(out)
+
+    def save_params(self, out=None, force: bool = False) -> None:
+        """Write parameters set since the file was last written (at most once a second; `force`:
+        now, as the loop stops); a failed write is said in a STATUSTEXT on `out`."""
+        why = self.params.flush(force)
+        if why and out is not None:  # flying with it; the next start will not have it
+            out.send(mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_WARNING, why[:50].encode()))
 
     def streams(self, out, t: float) -> None:
         if self.loop.rates.due("LOCAL_POSITION_NED", t):

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from .files import read_text_bounded
 
 NAME_MAX = 16  # PARAM_VALUE.param_id: char[16], no terminator when all 16 are used
 MAX_FILE_BYTES = 1 << 20
+SAVE_PERIOD_S = 1.0  # the parameter file is rewritten at most this often (Parameters.flush)
 
 
 class ParameterFileError(ValueError):
@@ -149,8 +151,11 @@ class Parameters:
         self.defaults = {p.name: float(default_values[p.name]) for p in PARAMS}
         self.values = dict(self.defaults)
         self.path = Path(path) if path is not None else None
-        self.save_errors = 0  # sets whose file write failed (the value still took effect)
-        self.last_save_error: str | None = None
+        self.save_errors = 0  # file writes that failed (the values still took effect)
+        self.last_save_error: str | None = None  # of the write the last call made, None if none
+        self.writes = 0  # file writes attempted
+        self._unsaved: str | None = None  # the last name set and not yet written, if any
+        self._next_write = -math.inf  # time.monotonic() before which the file is not rewritten
         if self.path is not None and self.path.exists():
             self.values.update(load(self.path))
 
@@ -169,20 +174,36 @@ class Parameters:
         return {k: v for k, v in self.values.items() if v != self.defaults[k]}
 
     def set(self, name: str, value: float) -> str | None:
-        """Set and persist one value; why not (nothing changed), else None. A file that cannot be
+        """Set and persist one value; why not (nothing changed), else None. The file is written at
+        once if it was not in the last SAVE_PERIOD_S, else by a later `flush` (the loop's 1 Hz
+        tick, and its stop): a flood of sets is not a file write each. A file that cannot be
         written leaves the value set and says so in `last_save_error`."""
         why = check(name, value)
         if why is not None:
             return why
         self.values[name] = float(value)
-        self.last_save_error = None
-        if self.path is not None:
-            try:
-                save(self.path, self.changed())
-            except OSError as exc:
-                self.save_errors += 1
-                self.last_save_error = f"{name} not saved: {exc.strerror or exc}"
+        self._unsaved = name
+        self.flush()
         return None
+
+    def flush(self, force: bool = False) -> str | None:
+        """Write the values set since the last write, if any, and if the last write is
+        SAVE_PERIOD_S old (`force`: now); why the write failed, else None."""
+        self.last_save_error = None
+        if self.path is None or self._unsaved is None:
+            return None
+        now = time.monotonic()
+        if not force and now < self._next_write:
+            return None
+        name, self._unsaved = self._unsaved, None
+        self._next_write = now + SAVE_PERIOD_S
+        self.writes += 1
+        try:
+            save(self.path, self.changed())
+        except OSError as exc:
+            self.save_errors += 1
+            self.last_save_error = f"{name} not saved: {exc.strerror or exc}"
+        return self.last_save_error
 
 
 def load(path: str | Path) -> dict:

@@ -388,6 +388,32 @@ def test_a_set_that_cannot_be_saved_flies_and_says_it_was_not_saved(tmp_path):
         s.close()
 
 
+def test_a_flood_of_param_sets_is_written_at_most_once_a_second_and_the_last_at_stop(tmp_path):
+    """A PARAM_SET takes effect at once but the parameter file is rewritten at most once a second
+    (the writes are the control loop's disk IO): before the fix each of the N sets rewrote it. The
+    last value is in the file once the loop stops."""
+    path = tmp_path / "asr4.params"
+    s = Station(LoopConfig(parameter_file=str(path)))
+    n = 150
+    values = [2.0 + 4.0 * i / (n - 1) for i in range(n)]  # CTL_ATT_BW, in range, all different
+    writes = []  # (mtime_ns, inode) of each version of the file seen while the sets go in
+    try:
+        t0 = time.monotonic()
+        for i, v in enumerate(values):
+            s.send(mavlink.MAVLink_param_set_message(1, 1, b"CTL_ATT_BW", v, 9))
+            s.wait("PARAM_VALUE", lambda m: m.param_value == pytest.approx(v, rel=1e-6))  # one at a time
+            st = path.stat() if path.exists() else None
+            if st is not None and (st.st_mtime_ns, st.st_ino) not in writes:
+                writes.append((st.st_mtime_ns, st.st_ino))
+        elapsed = time.monotonic() - t0
+        assert s.loop.controller.gains.attitude_bandwidth_rad_s == pytest.approx(values[-1], rel=1e-6)  # live
+        assert len(writes) <= 2 + elapsed < n / 4, (len(writes), elapsed)  # seen on disk
+        assert s.loop.services.params.writes <= 2 + elapsed, (s.loop.services.params.writes, elapsed)
+    finally:
+        s.close()
+    assert P.load(path)["CTL_ATT_BW"] == pytest.approx(values[-1], rel=1e-6)  # written at stop
+
+
 @pytest.mark.slow  # a jetloop process loads the compiled model
 def test_jetloop_onboard_with_a_bad_parameter_file_exits_2_with_one_line(tmp_path):
     import subprocess
