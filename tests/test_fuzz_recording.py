@@ -307,7 +307,7 @@ def test_one_flipped_bit_in_a_dataflash_fmt_record_keeps_the_stream(tmp_path, na
     """Issue 15, second pass: one flipped bit in a stream's FMT record lost the stream (495 of the
     712 bits of the IMU's). An FMT record carries its own redundancy (length = its format's size,
     a column per format character, ASCII names, its type heading the records after it): the
-    flips above are mended and the stream reads whole, as in the clean log. (47 of the 712 IMU
+    flips above are mended and the stream reads whole, as in the clean log. (46 of the 712 IMU
     bits still lose it: a format character flipped into another of the same size, which the
     length cannot tell, or two columns flipped into one name.)"""
     clean_bytes = shared_file(ARDUSUB / "small.BIN").read_bytes()
