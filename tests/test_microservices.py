@@ -546,3 +546,20 @@ def test_set_message_interval_for_an_infinite_or_nan_message_id_is_acked_denied(
     acks = [m for m in sent if m.get_type() == "COMMAND_ACK"]
     assert [(a.command, a.result) for a in acks] == [(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_DENIED)]
     assert loop.stats.rejected_inputs == before
+
+
+def test_a_set_within_a_second_of_the_last_write_is_written_when_the_loop_stops(tmp_path):
+    """The second of two quick sets waits (at most a second, the 1 Hz tick) and is written when the
+    loop's run() returns; before the fix both were written at once."""
+    path = tmp_path / "asr4.params"
+    link = Link("udpin:127.0.0.1:0")
+    try:
+        loop = OnboardLoop(load_vehicle(), link, WallClock(), LoopConfig(parameter_file=str(path)), warm_up=False)
+        for v in (4.0, 5.0):
+            loop.handle(_decoded(mavlink.MAVLink_param_set_message(1, 1, b"CTL_ATT_BW", v, 9)))
+        assert loop.controller.gains.attitude_bandwidth_rad_s == pytest.approx(5.0)  # in effect at once
+        assert P.load(path)["CTL_ATT_BW"] == pytest.approx(4.0)  # the file: the first, written at once
+        assert loop.run(stop=lambda: True) == "stopped"
+        assert P.load(path)["CTL_ATT_BW"] == pytest.approx(5.0)
+    finally:
+        link.close()
