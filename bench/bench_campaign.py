@@ -36,9 +36,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ground.campaign import parse_spec, run_campaign  # noqa: E402
 from ground.campaign.tasks import execute  # noqa: E402
+from ground.prove import DURATION_P, DURATIONS_S  # noqa: E402
 
-# The family's flight durations and their probabilities (ground.prove.family_case).
-FAMILY_DURATIONS = ((60.0, 0.3), (90.0, 0.2), (120.0, 0.25), (180.0, 0.1), (300.0, 0.1), (600.0, 0.05))
+# The family's flight durations and their probabilities: ground.prove's, which family_case draws from.
+FAMILY_DURATIONS = tuple(zip(DURATIONS_S, DURATION_P))
 
 
 def measure(spec_text: str, workers: int, root: Path, label: str) -> dict:

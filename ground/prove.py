@@ -568,6 +568,11 @@ def _effect_family():
     ]
 
 
+# The family's flight durations (s) and their probabilities (family_case; bench/bench_campaign.py)
+DURATIONS_S = (60.0, 90.0, 120.0, 180.0, 300.0, 600.0)
+DURATION_P = (0.3, 0.2, 0.25, 0.1, 0.1, 0.05)
+
+
 @dataclass(frozen=True)
 class Flight:
     """How a benchmark case is flown and sensed."""
@@ -585,7 +590,7 @@ def family_case(split: str, index: int) -> tuple[Case, Flight, float]:
     sensors = str(rng.choice(SENSOR_SETS))
     flight = Flight(str(rng.choice(pilots)), sensors,
                     float(rng.choice([25.0, 50.0]) if sensors == "ardusub" else rng.choice([50.0, 100.0, 200.0])),
-                    float(rng.choice([60.0, 90.0, 120.0, 180.0, 300.0, 600.0], p=[0.3, 0.2, 0.25, 0.1, 0.1, 0.05])))
+                    float(rng.choice(list(DURATIONS_S), p=list(DURATION_P))))
     seed = int(rng.integers(1, 1_000_000))
     fam = _effect_family()
     if rng.random() < CONTROL_FRACTION:
