@@ -43,8 +43,9 @@ def _wait_for(lines, text: str, timeout_s: float) -> bool:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed (pip install '.[test]')")
 def test_mavproxy_detects_1_1_loads_every_parameter_sets_a_gain_arms_and_changes_mode(tmp_path):
+    if shutil.which("mavproxy.py") is None:  # in the test extra: required, as the suite's other tools
+        pytest.fail("MAVProxy (mavproxy.py) is not installed: pip install '.[test]'")
     port = free_udp_port()
     proc, lines = _mavproxy(port, tmp_path)
     robot = None
@@ -90,7 +91,10 @@ def test_mavproxy_detects_1_1_loads_every_parameter_sets_a_gain_arms_and_changes
 def test_mavsdk_connects_reads_attitude_and_depth_gets_and_sets_a_parameter_arms_and_disarms(tmp_path):
     import math
 
-    pytest.importorskip("mavsdk", reason="MAVSDK not installed (pip install '.[test]')")
+    try:  # in the test extra: required, as the suite's other tools
+        import mavsdk  # noqa: F401
+    except ImportError as exc:
+        pytest.fail(f"MAVSDK is not installed ({exc}): pip install '.[test]'")
     from mavsdk import ComponentType, Configuration, Mavsdk
     from mavsdk.plugins.action import Action
     from mavsdk.plugins.param import Param
@@ -140,3 +144,25 @@ def test_mavsdk_connects_reads_attitude_and_depth_gets_and_sets_a_parameter_arms
     finally:
         robot.stop()
         sdk.destroy()
+
+
+# -- the clients are required, not optional ---------------------------------------------------------
+
+def test_a_missing_mavproxy_or_mavsdk_fails_the_client_tests_instead_of_skipping_them(tmp_path):
+    """Both are in the test extra: a machine without them must not pass these tests by skipping
+    (before the fix they skipped). Run in a child pytest with mavproxy.py off PATH and a `mavsdk`
+    that does not import."""
+    import os
+
+    hidden = tmp_path / "hidden"
+    (hidden / "mavsdk").mkdir(parents=True)
+    (hidden / "mavsdk" / "__init__.py").write_text("raise ImportError('mavsdk hidden by the test')\n")
+    env = dict(os.environ, PATH=str(tmp_path / "no-bin"),
+               PYTHONPATH=os.pathsep.join([str(hidden), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", "-rfs",
+                        "tests/test_gcs_clients.py", "-k", "test_mavproxy_detects or test_mavsdk_connects"],
+                       cwd=root, env=env, capture_output=True, text=True, timeout=300)
+    tail = r.stdout[-2000:]
+    assert "2 failed" in tail and "skipped" not in tail, tail
+    assert "MAVProxy" in tail and "MAVSDK" in tail, tail
