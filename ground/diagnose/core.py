@@ -35,6 +35,8 @@ MIN_DRAWS = 2  # fewer calibrated null draws than this: no finding (the threshol
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
 Z_GATE = 2.5  # the data-driven `unknown` term (not calibrated by the null draws) must lower the
 # held-out chi-square by 2 Z_GATE of its sd, and pass the never-worse gate
+UNKNOWN_MIN_EXPLAINED = 0.5  # ... and explain at least this share of the held-out excess (its
+# `confidence` is that share): eval block 216-315 named terms explaining 6-21 %, one on a control
 
 PHRASES = {
     "thrust_inflow": "grows with the inflow along the jets (advance ratio, seed 000)",
@@ -219,7 +221,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         unknown = _unknown_term(ev, traj, vehicle, final, final_res, split) if final is not None else alone
         if alone is not None and final is not None and alone["delta"] > final.delta_holdout:
             unknown = dict(alone, first=True)
-        if unknown is not None and unknown["delta"] <= gate_unknown:
+        if unknown is not None and (unknown["delta"] <= gate_unknown or unknown["confidence"] < UNKNOWN_MIN_EXPLAINED):
             unknown = None
         if unknown is not None:
             _say(progress, f"unknown term: {unknown['formula']}")
