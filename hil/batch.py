@@ -152,7 +152,7 @@ def _check(states, commands, params, dt_s, n_steps):
             f"{model.StateLayout(4).size} for 4 units)"
         )
     p = _float_array("params", params, 2, "(N, np)")
-    n_par = model.P_UNITS + 6 * k
+    n_par = model.P_UNITS + (6 + model.UNIT_TAIL) * k  # per unit: 6 of geometry, UNIT_TAIL of thruster kind
     if p.shape != (n_veh, n_par):
         raise ValueError(
             f"params: expected shape ({n_veh}, {n_par}) (one pack_params row per vehicle, {k} units), "
