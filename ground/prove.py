@@ -473,14 +473,20 @@ def vehicle_toml(v: Vehicle, header: str = "") -> str:
 
     from onboard.vehicle import SECTIONS, _toml_value
 
+    def table(name: str, obj) -> list[str]:  # an optional key at its default is left out, as a user would
+        # (TOML has no null for jet_neutral = None; an empty fixed_channels means no fixed thrusters)
+        return [f"[{name}]"] + [f"{f.name} = {_toml_value(getattr(obj, f.name))}" for f in dataclasses.fields(obj)
+                                if f.default is dataclasses.MISSING or getattr(obj, f.name) != f.default] + [""]
+
     lines = [header.rstrip(), f'name = "{v.name}"', ""] if header else [f'name = "{v.name}"', ""]
     for sec in SECTIONS:
-        obj = getattr(v, sec)
-        lines.append(f"[{sec}]")
-        lines += [f"{f.name} = {_toml_value(getattr(obj, f.name))}" for f in dataclasses.fields(obj)]
-        lines.append("")
+        lines += table(sec, getattr(v, sec))
     for u in v.units:
         lines += ["[[unit]]", f"position = {_toml_value(u.position)}", f"neutral = {_toml_value(u.neutral)}", ""]
+    for u in v.fixed:
+        lines += ["[[fixed]]", f"position = {_toml_value(u.position)}", f"direction = {_toml_value(u.direction)}", ""]
+    if v.fixed_thruster is not None:
+        lines += table("fixed_thruster", v.fixed_thruster)
     for f in dataclasses.fields(v.effects):
         eff = getattr(v.effects, f.name)
         lines.append(f"[effects.{f.name}]")
