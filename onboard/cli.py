@@ -16,7 +16,7 @@ and MAVProxy's) may command, and only this vehicle (system 1) or everyone (0) ma
 setpoints outside the vehicle file's [envelope] are refused. With `--key` every inbound message
 on either link must be signed (the autopilot or plant too: `jetloop hil --key`). Sensor data and
 actuator feedback count only from the autopilot on `--link` (`--autopilot SYS[:COMP]`, else the
-first component 1 sending IMU, pressure or attitude there), never from `--ground`. A udpin link answers only its peer:
+first component 1 sending sensor data there), never from `--ground`. A udpin link answers only its peer:
 the first sender of valid (with `--key`, signed) MAVLink, until it is silent for 5 s, or the one
 `--peer` / `--ground-peer` fixes; other senders are counted, never answered. Every refusal is
 counted in the NAMED_VALUE_FLOAT telemetry and in the summary printed at exit, every link's

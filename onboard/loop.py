@@ -310,7 +310,7 @@ class LoopConfig:
     signing_key: bytes | None = None  # MAVLink 2 signing on: unsigned commands refused (ground.commands)
     fault_monitor: bool = True  # onboard.monitor: detect, report and reconfigure around faults
     ground_systems: tuple = GCS_SYSTEMS  # source systems whose commands/setpoints count (others: foreign)
-    autopilot: tuple | None = None  # (system, component 0=any) whose sensor data counts; None: the first component 1 sending IMU, pressure or attitude on the main link
+    autopilot: tuple | None = None  # (system, component 0=any) whose sensor data counts; None: the first component 1 sending sensor data on the main link
     max_stamp_skew_s: float = 0.2  # a sensor stamp further than this from the newest is held (StampGuard); < imu_timeout_s
     identity: str = "auto"  # to the ground: "vehicle" (component 1), "companion" (191), "auto" (onboard.microservices.Identity)
     parameter_file: str | None = None  # where MAVLink parameter sets persist and are read at start (onboard.params)

@@ -40,8 +40,8 @@ ahead, sent to the ground port of a signed robot tripped its IMU failsafe for go
   RADIO_STATUS alone is exempt, as ArduPilot exempts it;
 - sensor data is accepted only on the main link (the ground link never carries it) and only from
   the autopilot: the (system, component) configured (`autopilot=`), else the first one seen
-  sending sensor data proper (IMU, pressure, attitude: `ELECTING_MESSAGES`) from an autopilot's
-  component (1, `AUTOPILOT_COMPONENTS`) on the main link; a ground system (`ground_systems`)
+  sending sensor data from an autopilot's component (1, `AUTOPILOT_COMPONENTS`) on the main
+  link; a ground system (`ground_systems`)
   never becomes it, and what comes before the election from anyone else (a companion's
   SYSTEM_TIME from 1:191) is refused, not elected.
   Anything else is `sensors_refused`, silently.
@@ -82,13 +82,9 @@ SENSOR_MESSAGES = frozenset({
     "SCALED_PRESSURE2", "ATTITUDE", "SYSTEM_TIME", "ESC_TELEMETRY_1_TO_4", "ESC_TELEMETRY_5_TO_8",
     "ESC_TELEMETRY_9_TO_12", "ACTUATOR_OUTPUT_STATUS",
 })
-# What may elect the autopilot (issue 15, second pass): sensor data proper, from an autopilot's component.
-# A companion's SYSTEM_TIME (1:191), ESC telemetry or a joint-angle report first on the link made its
-# sender "the autopilot" for good, and the real autopilot's samples were refused from then on.
-ELECTING_MESSAGES = frozenset({
-    "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU", "SCALED_PRESSURE",
-    "SCALED_PRESSURE2", "ATTITUDE",
-})
+# Who may be elected the autopilot (issue 15, second pass): an autopilot's component. A companion's
+# SYSTEM_TIME (1:191), ESC telemetry or a joint-angle report first on the link made its sender "the
+# autopilot" for good, and the real autopilot's samples were refused from then on.
 AUTOPILOT_COMPONENTS = frozenset({mavlink.MAV_COMP_ID_AUTOPILOT1})  # 1: ArduPilot's, PX4's and the HIL plant's
 UNSIGNED_EXEMPT = frozenset({"RADIO_STATUS"})  # what a signed channel still takes unsigned (as ArduPilot)
 
@@ -360,10 +356,13 @@ class CommandGate:
         elif src[0] in self.ground_systems or src[0] == 0:
             why = f"sensor data from ground system {src[0]}"
         elif self.autopilot is None:
-            if msg.get_type() in ELECTING_MESSAGES and src[1] in AUTOPILOT_COMPONENTS:
+            # the component decides, not the message: the HIL plant's lock-step frame marker
+            # (SYSTEM_TIME from 1:1) may arrive first under reordering, and refusing it left the
+            # plant waiting for its t = 0 command for good (test_monitor's faulty-link flight)
+            if src[1] in AUTOPILOT_COMPONENTS:
                 self.autopilot = src  # the first autopilot component sending sensor data on the main link
                 return ACCEPT
-            why = f"sensor data from {src[0]}:{src[1]} before an autopilot (component 1 sending IMU, pressure or attitude)"
+            why = f"sensor data from {src[0]}:{src[1]} before an autopilot (component 1 sending sensor data)"
         elif src[0] == self.autopilot[0] and self.autopilot[1] in (0, src[1]):
             return ACCEPT
         else:
