@@ -354,16 +354,18 @@ def lead_seconds(vehicle: Vehicle) -> float:
     at -0.10 rad/s: driven by |joint rate| it holds a steady thrust loss of a few tenths of a
     newton that a 2 s lead-in leaves out, and every window then shows a steady heave force the
     null draws (started from the lead-in's state) do not (eval controls, 2026-11-25). The moment
-    filter m1z has a slower pole but a zero DC gain (K s^2 / ...): its slow mode carries ~1e-4
-    of the response and is left out."""
+    filter m1z has a slower pole (-0.049 rad/s) but K s^2 above it: that mode's residue is 4e-4
+    against 6-13 for its other poles, so it is left out."""
     taus = [vehicle.thruster.motor_time_constant, vehicle.servo.time_constant]
+    if vehicle.fixed_thruster is not None:  # fixed two-way thrusters' own motor lag
+        taus.append(vehicle.fixed_thruster.time_constant)
     at = vehicle.effects.azimuth_transient
     if vehicle.effects.on("azimuth_transient"):
         for f in (at.f1x, at.f1y, at.f2x, at.f2z):
             for c, d in ((f[3], f[4]), (f[5], f[6])):
-                re = np.roots([1.0, c, d]).real
-                if (re < 0).all():  # an unstable or marginal factor has no time constant to wait out
-                    taus.append(float(-1.0 / re.max()))
+                real = np.roots([1.0, c, d]).real
+                if (real < 0).all():  # an unstable or marginal factor has no time constant to wait out
+                    taus.append(float(-1.0 / real.max()))
     return float(np.clip(LEAD_TAUS * max(taus), LEAD_S, LEAD_MAX_S))
 
 
