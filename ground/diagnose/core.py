@@ -217,10 +217,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     gate_unknown = 2 * Z_GATE * math.sqrt(2.0 * n_h)
     if excess0 > gate_unknown and explained_now < UNKNOWN_IF_EXPLAINED_BELOW and not bias_named:
         _say(progress, "no known effect explains the residual: fitting a sparse data-driven term")
-        alone = _unknown_term(ev, traj, vehicle, None, res0, split)
-        unknown = _unknown_term(ev, traj, vehicle, final, final_res, split) if final is not None else alone
-        if alone is not None and final is not None and alone["delta"] > final.delta_holdout:
-            unknown = dict(alone, first=True)
+        # on top of the known effect named, never in its place: the sparse term is not calibrated,
+        # and with dozens of terms it out-explains a calibrated finding it should only complete
+        # (eval case 316: buoyancy, S 180x its threshold, lost first place to a 60-term fit)
+        unknown = _unknown_term(ev, traj, vehicle, final, final_res, split)
         if unknown is not None and (unknown["delta"] <= gate_unknown or unknown["confidence"] < UNKNOWN_MIN_EXPLAINED):
             unknown = None
         if unknown is not None:
@@ -234,9 +234,6 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     extra = None
     if unknown is not None:
         extra = unknown["coefficients"]  # the data-driven term joins the corrected simulation
-        if unknown.get("first"):  # the data-driven term alone explains more: it stands alone
-            final_model = ev.base
-            chosen, final = [], None
     mdiag = replay.nominal_mass_diag(vehicle)
     shots = _shoot_holdout(ev, traj, split, ev.base, final_model, extra, mdiag)
     rejected = []
@@ -278,8 +275,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                  "confidence": round(unknown["confidence"], 3), "parameters": {},
                  "explanation": unknown["explanation"], "formula": unknown["formula"],
                  "heldout_chi2_drop": round(unknown["delta"], 1)}
-        # ranked by what it explains: first when it explains more than the known effects named
-        findings.insert(0 if unknown.get("first") or not findings else len(findings), entry)
+        findings.append(entry)  # after the calibrated findings (it is not calibrated)
     est = traj.estimate
     warnings = []
     if cal.draws < MIN_DRAWS:
