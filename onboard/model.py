@@ -206,6 +206,19 @@ def cross(a0, a1, a2, b0, b1, b2):
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
+@njit(cache=True, inline="always")
+def add_force_at(tau, rx, ry, rz, fx, fy, fz, mz_extra=0.0):
+    """tau += [F; r x F] for a force F applied at r (body FRD), plus a pure moment about body z
+    (Fossen 2011 eq. 2.116: the generalised force of a point force)."""
+    mx, my, mz = cross(rx, ry, rz, fx, fy, fz)
+    tau[0] += fx
+    tau[1] += fy
+    tau[2] += fz
+    tau[3] += mx
+    tau[4] += my
+    tau[5] += mz + mz_extra
+
+
 @njit(cache=True)
 def rotation(q):
     """R(q), body to NED, of a unit quaternion q = [w, x, y, z] (Fossen 2011 eq. 2.72)."""
@@ -447,14 +460,7 @@ def fixed_thruster(x, u, p, nu_r, k, i, xdot, tau, thrust_out):
         xdot[j + r] = 0.0
     o = P_UNITS + 6 * i
     rx, ry, rz = p[o], p[o + 1], p[o + 2]
-    fx, fy, fz = T * p[o + 3], T * p[o + 4], T * p[o + 5]
-    mx, my, mz = cross(rx, ry, rz, fx, fy, fz)
-    tau[0] += fx
-    tau[1] += fy
-    tau[2] += fz
-    tau[3] += mx
-    tau[4] += my
-    tau[5] += mz
+    add_force_at(tau, rx, ry, rz, T * p[o + 3], T * p[o + 4], T * p[o + 5])
     thrust_out[i] = T
 
 
@@ -521,13 +527,7 @@ def jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust_out):
         fx = axial * F[0, 0] + lat_a * F[1, 0] + lat_b * F[2, 0]
         fy = axial * F[0, 1] + lat_a * F[1, 1] + lat_b * F[2, 1]
         fz = axial * F[0, 2] + lat_a * F[1, 2] + lat_b * F[2, 2]
-        mx, my, mz = cross(rx, ry, rz, fx, fy, fz)
-        tau[0] += fx
-        tau[1] += fy
-        tau[2] += fz
-        tau[3] += mx
-        tau[4] += my
-        tau[5] += mz - g_T * m1z
+        add_force_at(tau, rx, ry, rz, fx, fy, fz, -g_T * m1z)
         thrust_out[i] = axial
 
 
