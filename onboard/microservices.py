@@ -436,7 +436,7 @@ class Microservices:
             return loop._heartbeat()
         if msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
             st = loop.stats.step_time_s
-            return loop._sys_status(st[-1] if len(st) else 0.0)
+            return loop._sys_status(next(reversed(st), 0.0))  # the newest step (a Ring has no [-1])
         if msg_id == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME:
             return self.system_time(t)
         if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:

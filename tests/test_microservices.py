@@ -292,6 +292,11 @@ def test_request_message_autopilot_version_acks_then_sends_the_true_capabilities
     station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
                                                       mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, 0, 0, 0, 0, 0, 0))
     assert station.ack(mavlink.MAV_CMD_REQUEST_MESSAGE).result == mavlink.MAV_RESULT_DENIED  # no GNSS to report
+    # every message the robot can fill is acked (SYS_STATUS raised inside the request: no ACK at all,
+    # found by a hostile sweep of REQUEST_MESSAGE over ids 0-300)
+    for mid in (mavlink.MAVLINK_MSG_ID_SYS_STATUS, mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_SYSTEM_TIME):
+        station.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mid, 0, 0, 0, 0, 0, 0))
+        assert station.ack(mavlink.MAV_CMD_REQUEST_MESSAGE).result == mavlink.MAV_RESULT_ACCEPTED, mid
 
 
 def test_timesync_ping_and_system_time(station):
