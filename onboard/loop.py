@@ -724,6 +724,10 @@ class OnboardLoop:
                 why = str(exc) if str(exc).startswith("setpoint refused") else f"setpoint refused: {name[:20]} malformed"
                 for reply in self.gate.refusal_text(why):  # rate-limited with the envelope's refusals
                     (self.ground or self.link).send(reply)
+            if name in ("COMMAND_LONG", "COMMAND_INT"):  # the command protocol: always an ack, FAILED here
+                ack = mavlink.MAVLink_command_ack_message(int(m.command), mavlink.MAV_RESULT_FAILED, 0, 0,
+                                                          m.get_srcSystem(), m.get_srcComponent())
+                (self.ground or self.link).send(ack)
 
     def _stamp_ok(self, t: float) -> bool:
         """Whether a sensor sample stamped t may count (StampGuard); follows a confirmed new time base."""
