@@ -186,8 +186,9 @@ def test_over_udp_replies_to_the_sender():
     assert backend.bad_packets == 1
 
 
-def test_jetloop_hil_json_sitl_command():
-    """`jetloop hil --json-sitl` as its own process answers SITL frames until its duration."""
+def _run_jetloop_hil_json_sitl(extra_args, pwm, frames: int, rate_hz: int = 400):
+    """`jetloop hil --json-sitl ... --duration frames/rate_hz` as its own process, fed `frames` SITL
+    frames of `pwm`; returns (replies parsed as SIM_JSON does, returncode, stdout, stderr)."""
     import subprocess
     import sys
     import time
@@ -198,7 +199,7 @@ def test_jetloop_hil_json_sitl_command():
     probe.close()
     proc = subprocess.Popen(
         [sys.executable, "-m", "ground.cli", "hil", "--json-sitl", "--link", f"udpin:127.0.0.1:{port}",
-         "--duration", "0.05", "--depth", "0.5"],
+         "--duration", repr(frames / rate_hz), *extra_args],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -207,8 +208,8 @@ def test_jetloop_hil_json_sitl_command():
     try:
         deadline = time.monotonic() + 60
         k = 0
-        while len(replies) < 20 and time.monotonic() < deadline:
-            client.sendto(sitl_frame(400, k, [1500] * 16), ("127.0.0.1", port))
+        while len(replies) < frames and time.monotonic() < deadline:
+            client.sendto(sitl_frame(rate_hz, k, pwm), ("127.0.0.1", port))
             try:
                 r = sitl_parse(client.recvfrom(65000)[0])
             except socket.timeout:
@@ -222,9 +223,30 @@ def test_jetloop_hil_json_sitl_command():
         client.close()
         if proc.poll() is None:
             proc.kill()
+    return replies, proc.returncode, out, err
+
+
+def test_jetloop_hil_json_sitl_command():
+    """`jetloop hil --json-sitl` as its own process answers SITL frames until its duration."""
+    replies, rc, out, err = _run_jetloop_hil_json_sitl(["--depth", "0.5"], [1500] * 16, 20)
     assert [r["timestamp"] for r in replies] == pytest.approx([k / 400 for k in range(1, 21)])
-    assert proc.returncode == 0, err
+    assert rc == 0, err
     assert "20 frames" in out
+
+
+def test_jetloop_hil_jet_neutral_makes_1500_us_no_thrust():
+    """`--jet-neutral 1500` reaches the plant: ArduSub's two-way outputs (1500 us neutral, 1100 us
+    full reverse) on asr4's one-way jets give no thrust; without the option the same frames run jet 1
+    at half speed (1500 us is the middle of jet_range) and push the vehicle along its direction."""
+    pwm = [1500, 1100, 1100, 1100] + [1500] * 12  # jet 1 at neutral, jets 2-4 "reversed", joints centred
+    speeds = {}
+    for name, extra in (("neutral", ["--jet-neutral", "1500"]), ("without", [])):
+        replies, rc, out, err = _run_jetloop_hil_json_sitl(["--vehicle", "asr4", "--depth", "0.5", *extra], pwm, 200)
+        assert rc == 0, err
+        assert len(replies) == 200
+        speeds[name] = float(np.hypot(*replies[-1]["velocity"][:2]))  # horizontal, m/s, after 0.5 s
+    assert speeds["neutral"] < 1e-9, speeds          # no jet pushes: nothing moves it sideways
+    assert speeds["without"] > 0.02, speeds          # half-speed jet 1: a push you cannot miss
 
 
 # --- issue 17: the four protocol findings, and the BlueROV2 Heavy as ArduSub flies it --------
