@@ -536,10 +536,19 @@ def _vector(x, size: int, what: str) -> np.ndarray:
     return a
 
 
+# Why a vehicle with both kinds of actuator is refused (onboard.vehicle.require_jets says it at load
+# time for every command that runs the onboard loop).
+_MIXED = ("a mixed vehicle is simulated but not allocated: the jets' QP plans each jet inside its joint "
+          "window and the loop compensates and monitors jets only")
+
+
 class _Base:
     def __init__(self, v: Vehicle, dt_s: float, config: AllocationConfig | None = None):
         if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):
             raise ValueError(f"dt_s: expected the control period in seconds (> 0), got {dt_s!r}")
+        if v.fixed:  # one clear line, not a division by zero in the warm-up (see FixedQpAllocator)
+            raise ValueError(f"{v.name}: {type(self).__name__} allocates vectored jets only; this vehicle has "
+                             f"{len(v.fixed)} fixed thrusters ({_MIXED})")
         self.vehicle = v
         self.geo = JetGeometry(v)
         self.k = v.n_units
@@ -902,7 +911,7 @@ class FixedQpAllocator:
     def __init__(self, v: Vehicle, dt_s: float, config: AllocationConfig | None = None):
         if v.units:
             raise ValueError(f"{v.name}: FixedQpAllocator allocates fixed thrusters only; this vehicle "
-                             f"has {v.n_jets} vectored jets too (a mixed vehicle is not supported yet)")
+                             f"has {v.n_jets} vectored jets too ({_MIXED})")
         if not v.fixed:
             raise ValueError(f"{v.name}: no [[fixed]] thrusters to allocate")
         if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):

@@ -341,12 +341,21 @@ def load_vehicle(path: str | Path | None = None) -> Vehicle:
 
 
 def require_jets(v: Vehicle, command: str) -> Vehicle:
-    """`v` if it has vectored jets; else a one-line VehicleFileError saying who flies it instead
-    (the onboard loop, its controller and allocator are written for vectored water-jets)."""
+    """`v` if its actuators are vectored jets only; else a one-line VehicleFileError saying who flies
+    it instead. The onboard loop is written for one kind of actuator: its allocator plans jet forces
+    inside each joint's travel window, its transient compensation cancels the forces of moving
+    joints, its monitor judges each jet by its speed model. A vehicle of fixed thrusters only is
+    flown by its autopilot; one that mixes both kinds is simulated (`jetloop sim`, `jetloop hil`)
+    but not flown onboard (README, "Mixed vehicles")."""
     if not v.n_jets:
         raise VehicleFileError(
             f"{v.source}: {v.name} has fixed thrusters only: `jetloop {command}` runs the onboard loop, which "
             "flies vectored water-jets; fly it with its autopilot (ArduSub SITL: jetloop hil --json-sitl)")
+    if v.fixed:
+        raise VehicleFileError(
+            f"{v.source}: {v.name} mixes {v.n_jets} vectored jets with {len(v.fixed)} fixed thrusters: `jetloop "
+            f"{command}` runs the onboard loop, which flies one kind of actuator (jets or, through an autopilot, "
+            "fixed thrusters); a mixed vehicle can be simulated (jetloop sim, jetloop hil) but not flown onboard")
     return v
 
 

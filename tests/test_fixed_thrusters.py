@@ -304,3 +304,51 @@ def test_commands_that_run_the_onboard_loop_refuse_a_vehicle_without_jets_in_one
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "bluerov2_heavy has fixed thrusters only" in err and "jetloop hil --json-sitl" in err
+
+
+# --- a vehicle that mixes vectored jets and fixed thrusters: simulated, refused by the onboard loop --
+
+def _mixed_vehicle_text() -> str:
+    """asr4 with the heavy's first T200 added on channel 13 (jets 1-4, joints 5-12)."""
+    asr4 = DEFAULT_VEHICLE.read_text()
+    fixed = HEAVY_TEXT[HEAVY_TEXT.index("\n[fixed_thruster]"):HEAVY_TEXT.index("\n[[fixed]]   # 2")]
+    text = asr4.replace("\n[pwm] ", fixed + "\n[pwm] ", 1)
+    return text.replace("servo_range = [1100, 1900]", "servo_range = [1100, 1900]\nfixed_channels = [13]", 1)
+
+
+def test_a_mixed_vehicle_loads_and_the_plant_flies_both_kinds():
+    v = parse_vehicle(_mixed_vehicle_text(), source="mixed.toml")
+    assert v.unit_kinds == ("jet",) * 4 + ("fixed",)
+    speeds = {}
+    for jet1, t200 in ((1100, 1500), (1100, 1700), (1900, 1500)):  # all off; the T200 alone; jet 1 alone
+        pwm = [jet1, 1100, 1100, 1100] + [1500] * 8 + [t200]
+        p = Plant(v, dt_s=0.01, depth_m=2.0, noise=False, command=pwm_to_command(v, pwm))
+        p.advance(0.2)
+        speeds[jet1, t200] = p.state[7:9]  # surge, sway (body), m/s
+    assert np.abs(speeds[1100, 1500]).max() < 1e-9
+    u, w = speeds[1100, 1700]  # the T200 pushes along its direction, -x +y at 45 deg
+    assert u < -0.01 and w > 0.01, (u, w)
+    assert abs(speeds[1900, 1500][0]) > 0.01  # and jet 1 at full speed still pushes along its neutral
+
+
+def test_a_mixed_vehicle_is_refused_by_the_allocators_in_one_line():
+    from onboard.allocation import PseudoInverseAllocator, QpAllocator
+
+    v = parse_vehicle(_mixed_vehicle_text(), source="mixed.toml")
+    for make in (QpAllocator, PseudoInverseAllocator, FixedQpAllocator, allocator_for):
+        with pytest.raises(ValueError) as exc:
+            make(v, 0.01)
+        assert "\n" not in str(exc.value) and "a mixed vehicle is simulated but not allocated" in str(exc.value)
+
+
+@pytest.mark.parametrize("command", [["onboard", "--lockstep", "--link", "udpout:127.0.0.1:14999"], ["demo"],
+                                     ["soak", "--duration", "200"]])
+def test_commands_that_run_the_onboard_loop_refuse_a_mixed_vehicle_in_one_line(command, tmp_path, capsys):
+    from ground.cli import main
+
+    path = tmp_path / "mixed.toml"
+    path.write_text(_mixed_vehicle_text())
+    assert main([command[0], "--vehicle", str(path), *command[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "mixes 4 vectored jets with 1 fixed thrusters" in err, err
+    assert "can be simulated" in err
