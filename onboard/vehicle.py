@@ -740,27 +740,31 @@ def _plain(value):
 
 
 def fragment_toml(values: dict[str, Any]) -> str:
-    """A vehicle-file fragment (TOML) for dotted keys, e.g. fitted parameters to paste back."""
+    """A vehicle-file fragment (TOML) for dotted keys, e.g. fitted parameters to paste back
+    (floats to 6 significant digits: a fit is not known better)."""
     tables: dict[str, list[str]] = {}
     unit_lines = []
     for key, value in values.items():
         if key.startswith("unit["):
             # TOML cannot address one [[unit]] table by index: say which one to edit
-            unit_lines.append(f"# {key} = {_toml_value(value)}   (edit [[unit]] number {int(key[5:key.index(']')]) + 1})")
+            unit_lines.append(f"# {key} = {_toml_value(value, 6)}   (edit [[unit]] number {int(key[5:key.index(']')]) + 1})")
             continue
         table, _, leaf = key.rpartition(".")
-        tables.setdefault(table, []).append(f"{leaf} = {_toml_value(value)}")
+        tables.setdefault(table, []).append(f"{leaf} = {_toml_value(value, 6)}")
     out = "\n".join(f"[{t}]\n" + "\n".join(lines) + "\n" for t, lines in tables.items())
     return out + ("\n".join(unit_lines) + "\n" if unit_lines else "")
 
 
-def _toml_value(v) -> str:
+def _toml_value(v, digits: int | None = None) -> str:
+    """A value as TOML. Floats exact by default (Python's repr: the shortest text that reads back
+    to the same double; `inf`/`nan` are TOML too), so a vehicle written out loads back equal;
+    `digits` rounds them to that many significant digits (a fitted value shown to a person)."""
     if hasattr(v, "tolist"):
         v = v.tolist()
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+        return "[" + ", ".join(_toml_value(x, digits) for x in v) + "]"
     if isinstance(v, float):
-        return repr(float(f"{v:.6g}"))
+        return repr(float(f"{v:.{digits}g}")) if digits is not None else repr(float(v))
     return repr(v)
