@@ -1033,6 +1033,45 @@ DF_NEEDED = {"IMU": ("TimeUS", "I", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "Gyr
              "ATT": ("TimeUS", "Roll", "Pitch", "Yaw"), "ESC": ("TimeUS", "Instance", "RPM")}
 FMT_HEADER = b"\xa3\x95\x80"
 
+# ArduPilot's own definitions (name, format, columns) of the streams read, as its logger writes
+# them into every log's FMT records: an FMT of one of these names whose length, format and
+# columns are one bit from exactly one of these is mended to it (_repair_fmts). The record alone
+# cannot tell a format character flipped into another of the same size (`f` into `n`, the length
+# agrees with both) or a column flipped into its neighbour's name (`GyrX` into `GyrY`).
+#   IMU:  libraries/AP_InertialSensor/LogStructure.h, LOG_STRUCTURE_FROM_INERTIALSENSOR (4.1 on);
+#         before 4.1, libraries/AP_Logger/LogStructure.h (DataFlash/LogStructure.h) LOG_IMU_MSG
+#   BARO: libraries/AP_Baro/LogStructure.h, LOG_STRUCTURE_FROM_BARO
+#   RCOU: libraries/AP_Logger/LogStructure.h, LOG_RCOUT_MSG
+#   ATT:  libraries/AP_AHRS/LogStructure.h, LOG_ATTITUDE_MSG (AP_Logger/LogStructure.h before)
+#   ESC:  libraries/AP_ESC_Telem/LogStructure.h, LOG_STRUCTURE_FROM_ESC_TELEM (with RXErr; with
+#         RawRPM later); ArduSub V4.1.0 wrote it without RXErr (shared/data/ardusub/small.BIN)
+DF_KNOWN = {
+    "IMU": (("QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz"),
+            ("QffffffIIfBBHH", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz"),
+            ("QffffffIIfBB", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG,ErrA,Temp,GyHlt,AcHlt")),
+    "BARO": (("QBffcfIffB", "TimeUS,I,Alt,Press,Temp,CRt,SMS,Offset,GndTemp,Health"),),
+    "RCOU": (("QHHHHHHHHHHHHHH", "TimeUS,C1,C2,C3,C4,C5,C6,C7,C8,C9,C10,C11,C12,C13,C14"),),
+    "ATT": (("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF"),),
+    "ESC": (("QBeffcfcf", "TimeUS,Instance,RPM,Volt,Curr,Temp,CTot,MotTemp,Err"),
+            ("QBeffcfcff", "TimeUS,Instance,RPM,Volt,Curr,Temp,CTot,MotTemp,Err,RXErr"),
+            ("QBffffcfcf", "TimeUS,Instance,RPM,RawRPM,Volt,Curr,Temp,CTot,MotTemp,Err")),
+}
+
+
+def _known_fmt(name: str, record: bytes) -> bytes | None:
+    """The length, format and columns fields (record[4], [9:25], [25:89]) of the one known
+    definition of NAME (DF_KNOWN) one bit from this FMT record's, or None (exact, none, or two)."""
+    have = record[4:5] + record[9:89]
+    near = []
+    for fmt, cols in DF_KNOWN.get(name, ()):
+        want = bytes([_fmt_size(fmt)]) + fmt.encode().ljust(16, b"\0") + cols.encode().ljust(64, b"\0")
+        bits = sum(bin(a ^ b).count("1") for a, b in zip(have, want))
+        if bits == 0:
+            return None
+        if bits == 1:
+            near.append(want)
+    return near[0] if len(near) == 1 else None
+
 
 def _one_bit(a: bytes, b: bytes) -> bool:
     return len(a) == len(b) and sum(bin(x ^ y).count("1") for x, y in zip(a, b)) == 1
@@ -1104,6 +1143,12 @@ def _repair_fmts(data: bytes) -> tuple:
             buf[i + 5:i + 9] = name.ljust(4, b"\0")
         if name.decode("latin-1") not in DF_NEEDED:
             buf[i:i + 89] = before  # only what is read is mended (a mended MULT made DFReader fail on its records)
+            continue
+        known = _known_fmt(name.decode("latin-1"), bytes(buf[i:i + 89]))
+        if known is not None:  # one bit from ArduPilot's own definition: that is the record
+            buf[i + 4] = known[0]
+            buf[i + 9:i + 89] = known[1:]
+            repaired += 1
             continue
         f = fmt.decode("latin-1")
         size = _fmt_size(f)
