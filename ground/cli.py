@@ -60,6 +60,21 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
+def make_output_dir(path, command: str):
+    """The output directory `path` of `jetloop COMMAND`, created with its parents; if it cannot be,
+    one line on stderr ("jetloop COMMAND: cannot create output directory PATH: why") and None, for
+    the command to return 2."""
+    from pathlib import Path
+
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"{command}: cannot create output directory {out}: {exc.strerror or exc}", file=sys.stderr)
+        return None
+    return out
+
+
 def _raise_interrupt(signum, frame):
     # An exception raised inside a gc callback is swallowed by the interpreter ("Exception ignored
     # in gc callback"): onboard.loop times each collection with one, so a SIGTERM landing there

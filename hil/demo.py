@@ -571,11 +571,10 @@ def run(args) -> int:
     except VehicleFileError as exc:
         print(f"jetloop demo: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        print(f"jetloop demo: cannot create output directory {out}: {exc.strerror or exc}", file=sys.stderr)
+    from ground.cli import make_output_dir
+
+    out = make_output_dir(args.out, "jetloop demo")
+    if out is None:
         return 2
     from hil.faults import FaultPlanError, injection_events, plan_from_args
 

@@ -1011,11 +1011,10 @@ def run(args) -> int:
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if args.retime is not None:
         return _retime_dir(Path(args.retime), vehicle, args.max_growth, say)
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        print(f"jetloop soak: cannot create output directory {out}: {exc.strerror or exc}", file=sys.stderr)
+    from ground.cli import make_output_dir
+
+    out = make_output_dir(args.out, "jetloop soak")
+    if out is None:
         return 2
     say(f"jetloop soak: {args.duration:.0f} s simulated, seed {args.seed}, vehicle {vehicle.name}, "
         f"faults {'off' if args.no_faults else 'on'}, output {out}/")

@@ -474,3 +474,34 @@ def test_the_vehicle_file_goes_to_the_cluster_once_not_with_every_task(tmp_path,
         assert a[tid]["control_steps"] == 200
         assert (tmp_path / "serial" / "tasks" / tid / "mission.tlog").read_bytes() == \
             (tmp_path / "local" / "tasks" / tid / "mission.tlog").read_bytes()
+
+
+@pytest.mark.parametrize("entry, make", [
+    ("results.parquet", lambda p: p.mkdir()),
+    ("tasks", lambda p: p.write_text("not a folder")),
+])
+def test_an_output_entry_of_the_wrong_kind_is_one_line_before_any_task(tmp_path, capsys, entry, make):
+    """A directory named results.parquet failed the table's first write after every task had run:
+    exit 1 and '[Errno 21] Is a directory: .../results.parquet.tmp' -> ...'."""
+    spec = write_spec(tmp_path, "kind = 'missions'\n[missions]\nmission = 'hold'\nduration_s = 2.0\ndraws = 0\n"
+                                "allocators = ['qp']\nseeds = [0]\n[missions.faults]\nnone = {}\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    make(out / entry)
+    t0 = time.monotonic()
+    assert main(["campaign", str(spec), "--out", str(out), "--workers", "0", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Errno" not in err, err
+    assert err.startswith(f"jetloop campaign: {out / entry} is ") and "move it away or choose another --out" in err
+    assert not (out / "campaign.json").exists() and time.monotonic() - t0 < 5  # nothing ran
+
+
+@pytest.mark.parametrize("argv", [["campaign", str(EXAMPLES / "missions.toml"), "--quiet"], ["demo"],
+                                  ["soak", "--duration", "200"]])
+def test_an_output_directory_that_cannot_be_made_is_one_line(tmp_path, capsys, argv):
+    """campaign, demo and soak share ground.cli.make_output_dir: --out under a regular file."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    assert main([*argv, "--out", str(blocker / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"jetloop {argv[0]}: cannot create output directory {blocker / 'out'}: Not a directory", err

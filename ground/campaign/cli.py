@@ -46,12 +46,21 @@ def run(args) -> int:
     except CampaignSpecError as exc:
         print(f"{name}: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        print(f"{name}: cannot create output directory {out}: {exc.strerror or exc}", file=sys.stderr)
+    from ground.cli import make_output_dir
+
+    out = make_output_dir(args.out, name)
+    if out is None:
         return 2
+    # What the campaign writes there, checked before any task runs (a directory named
+    # results.parquet failed the first write, after the tasks, with a raw errno message, exit 1)
+    for entry, want_dir in (("results.parquet", False), ("results.parquet.tmp", False), ("index.html", False),
+                            ("campaign.json", False), ("tasks", True)):
+        path = out / entry
+        if path.exists() and path.is_dir() != want_dir:
+            print(f"{name}: {path} is {'not a directory' if want_dir else 'a directory'}; the campaign writes its "
+                  f"{'task folders' if want_dir else 'file'} there: move it away or choose another --out",
+                  file=sys.stderr)
+            return 2
     if not args.quiet:
         where = (f"scheduler {args.scheduler}" if args.scheduler else "this process, one task after the other"
                  if args.workers == 0 else "a local Dask cluster")
