@@ -12,11 +12,13 @@ What it does, all in one process tree it owns:
 2. The ArduSub binary, `--model JSON:127.0.0.1`, the sea-level home ArduSub's autotest uses
    (33.810313,-118.393867,0,185: a home 584 m above sea level made the barometer read -57617 hPa),
    its default parameters (`--defaults`: sub.parm, plus sub-6dof.parm for the heavy frame).
-3. pymavlink on tcp:127.0.0.1:5760: waits for the EKF, arms in MANUAL, then STABILIZE and
-   ALT_HOLD with the sticks centred (MANUAL_CONTROL at 10 Hz) for `--hold` s, then forward and
-   lateral stick in ALT_HOLD.
+3. pymavlink on tcp:127.0.0.1:5760: waits for the EKF, arms in MANUAL, waits until ArduSub's
+   heading estimate has converged (GPS in use, its ATTITUDE yaw within 1 deg of the plant's for
+   5 s; `--no-heading-wait` skips this), then STABILIZE and ALT_HOLD with the sticks centred
+   (MANUAL_CONTROL at 10 Hz) for `--hold` s, then forward and lateral stick in ALT_HOLD.
 4. Prints from the plant's own state (the truth, not ArduSub's estimate): depth and heading
-   spread over the hold, and the body-frame displacement during the forward and lateral inputs.
+   change from the mode change over the hold, ArduSub's heading minus the plant's, and the
+   body-frame displacement during the forward and lateral inputs.
 """
 
 from __future__ import annotations
@@ -47,6 +49,9 @@ def main(argv=None) -> int:
     ap.add_argument("--depth", type=float, default=2.0, help="start depth of the plant, m")
     ap.add_argument("--hold", type=float, default=60.0, help="seconds of each hold (STABILIZE, ALT_HOLD)")
     ap.add_argument("--port", type=int, default=9002)
+    ap.add_argument("--no-heading-wait", dest="heading_wait", action="store_false",
+                    help="enter the holds as soon as the EKF has attitude and depth, before its heading has "
+                         "converged (how the first runs were flown)")
     ap.add_argument("--workdir", default="/tmp/jetloop_ardusub_sitl", help="SITL's eeprom and logs go here")
     args = ap.parse_args(argv)
     if not args.ardusub:
@@ -101,6 +106,28 @@ def _truth(backend, model):
     x = backend.plant.state
     _, _, yaw = model.quat_to_euler(x[3:7])
     return float(x[2] - backend.vehicle.environment.surface_depth), math.degrees(yaw), x[0:3].copy()
+
+
+def _wrap(deg: float) -> float:
+    """An angle difference in (-180, 180] deg."""
+    return ((deg + 180.0) % 360.0) - 180.0
+
+
+def _param(mav, name: str, timeout_s: float = 5.0) -> float:
+    """One ArduSub parameter read over MAVLink (nan if it does not answer)."""
+    mav.param_fetch_one(name)
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        m = mav.recv_match(type="PARAM_VALUE", blocking=True, timeout=1)
+        if m is not None and m.param_id == name:
+            return float(m.param_value)
+    return float("nan")
+
+
+def ekf_gps(mav) -> bool:
+    """True once ArduSub's last EKF_STATUS_REPORT says it has an absolute horizontal position (GPS in use)."""
+    m = mav.messages.get("EKF_STATUS_REPORT")
+    return m is not None and bool(m.flags & 0x10)
 
 
 def _fly(args, backend, vehicle, mavutil, model) -> int:
@@ -161,14 +188,47 @@ def _fly(args, backend, vehicle, mavutil, model) -> int:
     if not mav.motors_armed():
         print("FAILED: ArduSub did not arm")
         return 1
+    if args.heading_wait:
+        # SITL gives ArduSub a GPS; until its fix the compass declination is COMPASS_DEC (0), so the
+        # EKF's first heading is the magnetic one, off the true heading by the home's declination
+        # (11.5 deg here); armed, the EKF aligns its yaw in flight and converges over about a minute
+        # once the GPS is in use. A heading hold entered before then holds that wrong heading and
+        # turns the vehicle as the estimate converges. MANUAL with the sticks centred sends 1500 us,
+        # inside the T200's dead band: the wait pushes nothing (the vehicle sinks, 0.98 N heavy).
+        t_end = time.monotonic() + 300
+        agree_since, first_gap, t_print = None, None, 0.0
+        while time.monotonic() < t_end:
+            m = mav.recv_match(type=["EKF_STATUS_REPORT", "ATTITUDE"], blocking=True, timeout=2)
+            if m is None or m.get_type() != "ATTITUDE":
+                continue
+            gap = _wrap(math.degrees(m.yaw) - _truth(backend, model)[1])
+            first_gap = gap if first_gap is None else first_gap
+            if backend.time_s >= t_print:
+                print(f"  plant time {backend.time_s:5.1f} s: ArduSub's heading minus the plant's {gap:+6.2f} deg, "
+                      f"GPS in use: {ekf_gps(mav)}", flush=True)
+                t_print = backend.time_s + 10.0
+            if abs(gap) < 1.0 and ekf_gps(mav):
+                agree_since = agree_since if agree_since is not None else backend.time_s
+                if backend.time_s - agree_since >= 5.0:
+                    break
+            else:
+                agree_since = None
+        else:
+            print("FAILED: ArduSub's heading did not come within 1 deg of the plant's with the GPS in use within 300 s")
+            return 1
+        print(f"ArduSub's heading within 1 deg of the plant's for 5 s, GPS in use, at plant time "
+              f"{backend.time_s:.1f} s (at arming it was {first_gap:+.2f} deg off; COMPASS_DEC now "
+              f"{math.degrees(_param(mav, 'COMPASS_DEC')):.2f} deg)", flush=True)
     results = {}
     for mode in ("STABILIZE", "ALT_HOLD"):
         ok = set_mode(mode)
-        times, depths, headings = [], [], []
+        times, depths, headings, gaps = [], [], [], []
         t0 = backend.time_s  # plant (simulated) time: lock-step may run slower than the wall clock
         while backend.time_s - t0 < args.hold:
-            mav.recv_match(blocking=True, timeout=0.1)
+            m = mav.recv_match(blocking=True, timeout=0.1)
             d, h, _ = _truth(backend, model)
+            if m is not None and m.get_type() == "ATTITUDE":
+                gaps.append(_wrap(math.degrees(m.yaw) - h))
             times.append(backend.time_s - t0)
             depths.append(d)
             headings.append(h)
@@ -181,7 +241,8 @@ def _fly(args, backend, vehicle, mavutil, model) -> int:
               f"depth {min(depths):.3f}..{max(depths):.3f} m, largest change from the {d0:.3f} m at entry "
               f"{max(map(abs, dd)):.3f} m (after 10 s: {max(abs(dd[i]) for i in late):.3f} m); heading: largest "
               f"change from entry {max(map(abs, dh)):.2f} deg (after 10 s: {max(abs(dh[i]) for i in late):.2f} deg), "
-              f"{dh[-1]:+.2f} deg at the end", flush=True)
+              f"{dh[-1]:+.2f} deg at the end; ArduSub's heading minus the plant's: {gaps[0] if gaps else float('nan'):+.2f} deg "
+              f"at entry, {max(map(abs, gaps)) if gaps else float('nan'):.2f} deg at most", flush=True)
     for name, key, value in (("forward", "x", 500), ("lateral", "y", 500)):
         _, h0, p0 = _truth(backend, model)
         stick[key] = value
