@@ -1058,6 +1058,15 @@ DF_KNOWN = {
 }
 
 
+# The FMT record of FMT itself, the same in every dataflash log (libraries/AP_Logger/
+# LogStructure.h, LOG_FORMAT_MSG: "FMT", "BBnNZ", "Type,Length,Name,Format,Columns", 89 bytes).
+# DFReader reads every later FMT record with what this record says: one flipped bit in it
+# ('l' of Columns into ',') lost every stream of small.BIN, and at 2 % byte flips a damaged one
+# lost whole logs.
+FMT_OF_FMT = (FMT_HEADER + bytes([0x80, 89]) + b"FMT\0" + b"BBnNZ".ljust(16, b"\0")
+              + b"Type,Length,Name,Format,Columns".ljust(64, b"\0"))
+
+
 def _known_fmt(name: str, record: bytes) -> bytes | None:
     """The length, format and columns fields (record[4], [9:25], [25:89]) of the one known
     definition of NAME (DF_KNOWN) one bit from this FMT record's, or None (exact, none, or two)."""
@@ -1135,6 +1144,13 @@ def _repair_fmts(data: bytes) -> tuple:
     repaired = 0
     for i, (exact, name, fmt, cols) in fmts.items():
         before = bytes(buf[i:i + 89])
+        fmt_name = bytes(buf[i + 5:i + 9])
+        if buf[i + 3] == 0x80 and (fmt_name == b"FMT\0" or _one_bit(fmt_name, b"FMT\0")):
+            # FMT's own record: a constant of the format, whatever its damage (another type's
+            # record whose type id flipped into 0x80 keeps its own name, and is left alone)
+            buf[i:i + 89] = FMT_OF_FMT
+            repaired += bytes(buf[i:i + 89]) != before
+            continue
         if not exact:
             buf[i:i + 3] = FMT_HEADER
         wanted = [w for w in DF_NEEDED if w.encode() not in names and _one_bit(name.ljust(4, b"\0"), w.encode().ljust(4, b"\0"))]
