@@ -132,6 +132,9 @@ def run(args) -> int:
     print(f"jetloop onboard: {vehicle.name} on {args.link} ({'lock-step' if args.lockstep else 'real time'}, "
           f"{rate:g} Hz, {args.allocator}{'' if config.compensation else ', no compensation'}"
           f"{', commands must be signed' if key else ''})", flush=True)
+    if loop.yaw_preview_off:
+        print(f"jetloop onboard: yaw preview off for {vehicle.name}, the compensation runs without it: "
+              f"{loop.yaw_preview_off}", flush=True)
     t0 = time.monotonic()
     idle = args.idle_exit if args.idle_exit is not None else (10.0 if args.lockstep else None)
     why = "interrupted"

@@ -573,11 +573,39 @@ def _check_plausible(v: Vehicle, err: "_Errors") -> None:
                              f"K(J) > 0 over j_range [{lo:g}, {hi:g}] (a jet that pushes nothing, or backwards)")
 
 
+def _transient_stable(row: str, coeffs) -> bool:
+    """Whether a seed-004 row's denominator (onboard.model.transfer_function) has every pole in
+    the left half plane. Force rows, eq. 5, (s^2 + c s + d)(s^2 + e s + g): c, d, e, g > 0.
+    Moment row, eq. 6, s^4 + a s^3 + b s^2 + c s + d: Routh-Hurwitz for a quartic, a, b, c,
+    d > 0, a b > c and a b c > c^2 + a^2 d."""
+    if row == "m1z":
+        _, a, b, c, d = coeffs
+        return a > 0 and b > 0 and c > 0 and d > 0 and a * b > c and a * b * c > c * c + a * a * d
+    _, _, _, c, d, e, g = coeffs
+    return c > 0 and d > 0 and e > 0 and g > 0
+
+
+def _check_transients(v: Vehicle, err: "_Errors") -> None:
+    """With the azimuth transient on, its five rows must be stable transfer functions (seed 004's
+    are): a zero or unstable denominator passed every range and then made the onboard loop die on
+    a LinAlgError or an unstable yaw-preview plan (issue 15, adversarial re-run), and the plant
+    diverge (the transient of a joint that stopped rotating grew for ever)."""
+    at = v.effects.azimuth_transient
+    if not at.enabled or not v.n_jets:
+        return
+    for row in ("f1x", "f1y", "m1z", "f2x", "f2z"):
+        coeffs = getattr(at, row)
+        if not _transient_stable(row, coeffs):
+            err.lines.append(f"effects.azimuth_transient.{row} [{', '.join(f'{x:g}' for x in coeffs)}]: "
+                             "a pole with Re >= 0: expected a stable transient (seed 004), or enabled = false")
+
+
 def _check_consistency(v: Vehicle, err: "_Errors") -> None:
     _check_ranges(v, err)
     if not err.lines:
         _check_full_rank(v, err)
         _check_plausible(v, err)
+        _check_transients(v, err)
     n = v.n_jets
     for key in ("jet_channels", "azimuth_channels", "elevation_channels"):
         if len(getattr(v.pwm, key)) != n:

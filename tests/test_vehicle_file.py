@@ -326,6 +326,17 @@ ABSURD = [
     ("kt = [0.350165, -0.30192, 0.20207]", "kt = [0.350165, -1.30192, 0.20207]",
      "thruster.kt [0.350165, -1.30192, 0.20207]: K(J) -0.294 at J = 0.54: expected K(J) > 0 over j_range [0, 0.54] "
      "(a jet that pushes nothing, or backwards)"),
+    # issue 15, adversarial re-run: seed-004 rows whose denominator is zero or unstable passed
+    # (onboard died on a LinAlgError / an unstable yaw-preview plan; the plant diverged)
+    ("m1z = [711.34, 15.20, 839.31, 4751.00, 229.90]", "m1z = [711.34, 0.0, 0.0, 0.0, 0.0]",
+     "effects.azimuth_transient.m1z [711.34, 0, 0, 0, 0]: a pole with Re >= 0: expected a stable transient (seed 004), "
+     "or enabled = false"),
+    ("m1z = [711.34, 15.20, 839.31, 4751.00, 229.90]", "m1z = [711.34, 1.0, 1.0, 4751.0, 229.9]",
+     "effects.azimuth_transient.m1z [711.34, 1, 1, 4751, 229.9]: a pole with Re >= 0: expected a stable transient (seed 004), "
+     "or enabled = false"),
+    ("f1x = [1035.34, 76.51, 127.9, 9.88, 1.00, 6.40, 3228.49]", "f1x = [1035.34, 76.51, 127.9, -9.88, 1.0, 6.4, 3228.49]",
+     "effects.azimuth_transient.f1x [1035.34, 76.51, 127.9, -9.88, 1, 6.4, 3228.49]: a pole with Re >= 0: "
+     "expected a stable transient (seed 004), or enabled = false"),
 ]
 
 
@@ -348,6 +359,43 @@ def test_units_that_cannot_make_every_wrench_are_refused(vehicle):
         with pytest.raises(VehicleFileError, match="rank < 6"):
             vehicle.with_values(values)
     vehicle.with_values({f"unit[{i}].position": [0.05 * i, 0.01 * i * i, 0.07] for i in range(4)})
+
+
+def test_transient_rows_are_checked_only_when_the_transient_is_on(vehicle):
+    """bluerov2_heavy writes zeros with the effect off; the loop does not model them then."""
+    zeros = {f"effects.azimuth_transient.{r}": [0.0] * (5 if r == "m1z" else 7) for r in ("f1x", "f1y", "m1z", "f2x", "f2z")}
+    with pytest.raises(VehicleFileError, match="pole with Re >= 0"):
+        vehicle.with_values(zeros)
+    vehicle.with_values({**zeros, "effects.azimuth_transient.enabled": False})
+
+
+def test_a_transient_the_yaw_preview_cannot_plan_for_flies_without_it(tmp_path, reference_text, capsys):
+    """A stable transient unlike seed 004's (m1z's K ten times larger: one of 59 in 199 rows drawn
+    within 10x of seed 004's) made the yaw preview's plan unstable, and `jetloop onboard` died at
+    start with a ValueError traceback (issue 15, adversarial re-run). The preview is a refinement:
+    the loop flies with the compensation alone and says why on one line."""
+    from ground.cli import main
+    from hil.sim import FIXED_EPOCH_US, parse_commands, simulate, vehicle_channels
+    from hil.tlog import TlogWriter
+
+    text = edited(reference_text, "m1z = [711.34, 15.20, 839.31, 4751.00, 229.90]",
+                  "m1z = [7113.4, 15.20, 839.31, 4751.00, 229.90]")
+    path = tmp_path / "strong_m1z.toml"
+    path.write_text(text)
+    v = load_vehicle(path)
+    chans = vehicle_channels(v)
+    rec = tmp_path / "r.tlog"
+    with TlogWriter(rec) as w:  # a second of the vehicle's own sensor stream to fly on
+        csv = "t," + ",".join(f"pwm{c}" for c in chans) + "\n0," + ",".join("1500" for _ in chans) + "\n1,"
+        for chunk in simulate(v, parse_commands(csv + ",".join("1500" for _ in chans) + "\n", "c", chans)):
+            for t_us, msg in chunk.messages:
+                w.write(msg, FIXED_EPOCH_US + t_us)
+    code = main(["onboard", "--vehicle", str(path), "--link", f"tlog:{rec}", "--lockstep",
+                 "--params", str(tmp_path / "p.params")])
+    out = capsys.readouterr()
+    assert code == 0 and "Traceback" not in out.err, out.err[-2000:]
+    lines = [x for x in out.out.splitlines() if "yaw preview off" in x]
+    assert len(lines) == 1 and "unstable" in lines[0], out.out
 
 
 def test_a_huge_array_is_echoed_in_a_few_characters(tmp_path, reference_text):
