@@ -456,10 +456,10 @@ def _expect(f) -> str:
     what = CHECKS[check][1]
     if n is None:
         return what
-    if f.metadata.get("rows"):
-        return f"a list of lists of {what.replace('a ', '', 1)}s, each one per {f.metadata['per']}"
+    if f.metadata.get("rows"):  # "each" before the check's words: "a channel number 1..16s" read badly
+        return f"a list of lists of values, each {what}, a list per {f.metadata['per']}"
     if n == -1:
-        return f"a list of {what.replace('a ', '', 1)}s, one per {f.metadata.get('per', 'unit')}"
+        return f"a list of values, each {what}, one per {f.metadata.get('per', 'unit')}"
     return f"a list of {n} values, each {what}"
 
 
@@ -727,6 +727,7 @@ class _Errors:
     def raise_if_any(self) -> None:
         """One problem: one line (what a command prints before exiting 2); several: a header
         line, then one line per problem, every problem at once."""
+        self.lines = list(dict.fromkeys(self.lines))  # a channel repeated thrice was one problem said thrice
         if len(self.lines) == 1:
             raise VehicleFileError(f"{self.source}: invalid vehicle file: {self.lines[0]}")
         if self.lines:

@@ -398,6 +398,17 @@ def test_a_transient_the_yaw_preview_cannot_plan_for_flies_without_it(tmp_path, 
     assert len(lines) == 1 and "unstable" in lines[0], out.out
 
 
+def test_a_channel_used_four_times_is_one_problem_in_one_line(tmp_path, reference_text):
+    """Issue 15 re-run: `jet_channels = [1, 1, 1, 1]` said the same line three times under "3
+    problems", and a channel out of range read "a list of channel number 1..16s"."""
+    path, msg = load_error(tmp_path, edited(reference_text, "jet_channels = [1, 2, 3, 4]", "jet_channels = [1, 1, 1, 1]"))
+    assert msg == (f"{path}: invalid vehicle file: pwm.jet_channels: expected each channel used once "
+                   "(channel 1 is already in pwm.jet_channels), got [1, 1, 1, 1]")
+    path, msg = load_error(tmp_path, edited(reference_text, "jet_channels = [1, 2, 3, 4]", "jet_channels = [99, 2, 3, 4]"))
+    assert problem_lines(msg) == ["pwm.jet_channels: expected a list of values, each a channel number 1..16, "
+                                  "one per unit, got [99, 2, 3, 4]"]
+
+
 def test_a_huge_array_is_echoed_in_a_few_characters(tmp_path, reference_text):
     """A 3-million-element array made an 18 MB error message (a file of at most 1 MB, the vehicle
     file's bound, can still hold 150,000 values)."""
