@@ -437,31 +437,81 @@ def rig_spring(x, R, p):
 
 
 @njit(cache=True)
-def fixed_thruster(x, u, p, nu_r, k, i, xdot, tau, thrust_out):
-    """A fixed two-way thruster (spec 3.1): F_i = T_i d_i at r_i, T_i its thrust in newtons.
+def actuator(xa, u, p, k, i, out):
+    """Unit i's actuator states (spec 4: motor_lag, servo_lag, the seed-004 filters) on the
+    actuator part of the state, xa = x[13:] (speeds or thrusts k, azimuths k, elevations k, then
+    N_TF_STATES per unit): writes their derivatives into out (same layout) and returns
+    (n, a, b, ad, bd): the speed in use (a fixed thruster's thrust), the joint angles and rates.
+    The one description of the actuators, used by the plant (`jets_and_transients`) and by the
+    diagnosis' actuator replay (ground.diagnose.replay).
 
-    The command u[i] is the static thrust of the PWM (the curve of `onboard.fixed`), clipped to
-    [T_min, T_max]; with `motor_lag` T' = (T_cmd - T) / time_constant, else T = T_cmd. No joints,
-    so no azimuth transient: their states stay at rest. The curve is a bollard table, so
-    `thrust_inflow` does not apply.
+    A fixed two-way thruster (spec 3.1): its command is the static thrust of the PWM (the curve
+    of `onboard.fixed`), clipped to [T_min, T_max]; with `motor_lag` T' = (T_cmd - T) /
+    time_constant, else T = T_cmd. No joints, so no azimuth transient: those states stay at rest.
     """
     t = P_UNITS + 6 * k + UNIT_TAIL * i
-    T_cmd = min(max(u[i], p[t + 2]), p[t + 3])
+    j = 3 * k + N_TF_STATES * i
+    if p[t] > 0.5:
+        T_cmd = min(max(u[i], p[t + 2]), p[t + 3])
+        if p[ON_MOTOR] > 0.5:
+            T = xa[i]
+            out[i] = (T_cmd - T) / p[t + 1]
+        else:
+            T = T_cmd
+            out[i] = 0.0
+        out[k + i] = 0.0
+        out[2 * k + i] = 0.0
+        for r in range(N_TF_STATES):
+            out[j + r] = 0.0
+        return T, 0.0, 0.0, 0.0, 0.0
+    lim, nmax = p[P_ALIM], p[P_NMAX]
+    n_cmd = min(max(u[i], 0.0), nmax)
     if p[ON_MOTOR] > 0.5:
-        T = x[13 + i]
-        xdot[13 + i] = (T_cmd - T) / p[t + 1]
+        n = min(max(xa[i], 0.0), nmax)
+        out[i] = (n_cmd - n) / p[P_TAU_M]
     else:
-        T = T_cmd
-        xdot[13 + i] = 0.0
-    xdot[13 + k + i] = 0.0
-    xdot[13 + 2 * k + i] = 0.0
-    j = 13 + 3 * k + N_TF_STATES * i
-    for r in range(N_TF_STATES):
-        xdot[j + r] = 0.0
-    o = P_UNITS + 6 * i
-    rx, ry, rz = p[o], p[o + 1], p[o + 2]
-    add_force_at(tau, rx, ry, rz, T * p[o + 3], T * p[o + 4], T * p[o + 5])
-    thrust_out[i] = T
+        n = n_cmd
+        out[i] = 0.0
+    if p[ON_SERVO] > 0.5:
+        a, b = xa[k + i], xa[2 * k + i]
+        ad = servo_rate(a, u[k + i], lim, p[P_RLIM], p[P_TAU_S])
+        bd = servo_rate(b, u[2 * k + i], lim, p[P_RLIM], p[P_TAU_S])
+    else:
+        a = min(max(u[k + i], -lim), lim)
+        b = min(max(u[2 * k + i], -lim), lim)
+        ad, bd = 0.0, 0.0
+    out[k + i], out[2 * k + i] = ad, bd
+    if p[ON_TRANSIENT] > 0.5 and p[P_GAIN_T] > 0.0:  # transient rows driven by the joint rates
+        drives = (abs(ad), ad, ad, abs(bd), bd)
+        for r in range(5):
+            coef = p[P_TF + 8 * r:P_TF + 8 * r + 8]
+            filter_derivative(xa[j + 4 * r:j + 4 * r + 4], drives[r], coef, out[j + 4 * r:j + 4 * r + 4])
+    else:
+        for r in range(N_TF_STATES):
+            out[j + r] = 0.0
+    return n, a, b, ad, bd
+
+
+@njit(cache=True)
+def actuator_project(xa, u, p, k):
+    """After a step (spec 6), the actuator part xa = x[13:]: lag-free actuators set to their
+    command (clipped), joints clipped to their limits, a fixed thruster's joints at 0."""
+    lim = p[P_ALIM]
+    for i in range(k):
+        t = P_UNITS + 6 * k + UNIT_TAIL * i
+        if p[t] > 0.5:  # a fixed thruster: thrust without lag is its command; no joints
+            if p[ON_MOTOR] < 0.5:
+                xa[i] = min(max(u[i], p[t + 2]), p[t + 3])
+            xa[k + i] = 0.0
+            xa[2 * k + i] = 0.0
+            continue
+        if p[ON_MOTOR] < 0.5:
+            xa[i] = min(max(u[i], 0.0), p[P_NMAX])
+        for j in (k + i, 2 * k + i):
+            if p[ON_SERVO] < 0.5:
+                xa[j] = min(max(u[j], -lim), lim)
+            else:
+                xa[j] = min(max(xa[j], -lim), lim)
 
 
 @njit(cache=True)
@@ -473,33 +523,18 @@ def jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust_out):
     rates, force F_i = (T_i + dT_i) d_i + g T_i (F1y e_alpha + F2z e_beta) at r_i and the
     reaction moment -g T_i M1z about body z. Jets never push backwards: T_i + dT_i >= 0.
     """
-    i_n, i_a, i_b, i_tf = 13, 13 + k, 13 + 2 * k, 13 + 3 * k
-    lim, nmax = p[P_ALIM], p[P_NMAX]
+    i_tf = 13 + 3 * k
+    xa, xad = x[13:], xdot[13:]
     gain = p[P_GAIN_T] if p[ON_TRANSIENT] > 0.5 else 0.0
     for i in range(k):
-        if p[P_UNITS + 6 * k + UNIT_TAIL * i] > 0.5:
-            fixed_thruster(x, u, p, nu_r, k, i, xdot, tau, thrust_out)
-            continue
-        # Actuators
-        n_cmd = min(max(u[i], 0.0), nmax)
-        if p[ON_MOTOR] > 0.5:
-            n = min(max(x[i_n + i], 0.0), nmax)
-            xdot[i_n + i] = (n_cmd - n) / p[P_TAU_M]
-        else:
-            n = n_cmd
-            xdot[i_n + i] = 0.0
-        if p[ON_SERVO] > 0.5:
-            a, b = x[i_a + i], x[i_b + i]
-            ad = servo_rate(a, u[k + i], lim, p[P_RLIM], p[P_TAU_S])
-            bd = servo_rate(b, u[2 * k + i], lim, p[P_RLIM], p[P_TAU_S])
-        else:
-            a = min(max(u[k + i], -lim), lim)
-            b = min(max(u[2 * k + i], -lim), lim)
-            ad, bd = 0.0, 0.0
-        xdot[i_a + i], xdot[i_b + i] = ad, bd
-        # Geometry and inflow
+        n, a, b, ad, bd = actuator(xa, u, p, k, i, xad)
         o = P_UNITS + 6 * i
         rx, ry, rz = p[o], p[o + 1], p[o + 2]
+        if p[P_UNITS + 6 * k + UNIT_TAIL * i] > 0.5:  # a fixed thruster: F = T d at r (spec 3.1)
+            add_force_at(tau, rx, ry, rz, n * p[o + 3], n * p[o + 4], n * p[o + 5])
+            thrust_out[i] = n
+            continue
+        # Geometry and inflow
         F = jet_frame(a, b, p[o + 3], p[o + 4])
         c0, c1, c2 = cross(nu_r[3], nu_r[4], nu_r[5], rx, ry, rz)
         v_axial = (nu_r[0] + c0) * F[0, 0] + (nu_r[1] + c1) * F[0, 1] + (nu_r[2] + c2) * F[0, 2]
@@ -507,20 +542,12 @@ def jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust_out):
         # Transient rows (seed 004 eq. 5-6), driven by the actual joint rates
         j = i_tf + N_TF_STATES * i
         f1x = f1y = m1z = f2x = f2z = 0.0
-        if gain > 0.0:
-            drives = (abs(ad), ad, ad, abs(bd), bd)
-            for r in range(5):
-                coef = p[P_TF + 8 * r:P_TF + 8 * r + 8]
-                xf = x[j + 4 * r:j + 4 * r + 4]
-                filter_derivative(xf, drives[r], coef, xdot[j + 4 * r:j + 4 * r + 4])
+        if gain > 0.0:  # (their derivatives: `actuator`)
             f1x = filter_output(x[j:j + 4], p[P_TF:P_TF + 8])
             f1y = filter_output(x[j + 4:j + 8], p[P_TF + 8:P_TF + 16])
             m1z = filter_output(x[j + 8:j + 12], p[P_TF + 16:P_TF + 24])
             f2x = filter_output(x[j + 12:j + 16], p[P_TF + 24:P_TF + 32])
             f2z = filter_output(x[j + 16:j + 20], p[P_TF + 32:P_TF + 40])
-        else:
-            for r in range(N_TF_STATES):
-                xdot[j + r] = 0.0
         g_T = gain * T
         axial = max(T - g_T * (f1x + f2x), 0.0)
         lat_a, lat_b = g_T * f1y, g_T * f2z
@@ -590,22 +617,7 @@ def project(x, u, p):
     nq = math.sqrt(x[3] ** 2 + x[4] ** 2 + x[5] ** 2 + x[6] ** 2)
     for i in range(3, 7):
         x[i] /= nq
-    lim = p[P_ALIM]
-    for i in range(k):
-        t = P_UNITS + 6 * k + UNIT_TAIL * i
-        if p[t] > 0.5:  # a fixed thruster: thrust without lag is its command; no joints
-            if p[ON_MOTOR] < 0.5:
-                x[13 + i] = min(max(u[i], p[t + 2]), p[t + 3])
-            x[13 + k + i] = 0.0
-            x[13 + 2 * k + i] = 0.0
-            continue
-        if p[ON_MOTOR] < 0.5:
-            x[13 + i] = min(max(u[i], 0.0), p[P_NMAX])
-        for j in (13 + k + i, 13 + 2 * k + i):
-            if p[ON_SERVO] < 0.5:
-                x[j] = min(max(u[j - 13], -lim), lim)
-            else:
-                x[j] = min(max(x[j], -lim), lim)
+    actuator_project(x[13:], u, p, k)
 
 
 @njit(cache=True)
@@ -724,3 +736,4 @@ def thrust_newton(v: Vehicle, n, v_axial=0.0, inflow: bool | None = None) -> flo
     if inflow is not None:
         p[ON_INFLOW] = 1.0 if inflow else 0.0
     return float(jet_thrust(float(n), float(v_axial), p))
+

@@ -306,43 +306,9 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
 
 @njit(cache=True)
 def _act_derivative(xa, u, p, k, out):
-    """Actuator part of spec 4 (motor_lag, servo_lag, azimuth_transient filters) for k units."""
-    lim, nmax = p[model.P_ALIM], p[model.P_NMAX]
-    tf_on = p[model.ON_TRANSIENT] > 0.5
+    """The actuator part of the model (spec 4 and 3.1), from `onboard.model.actuator` itself."""
     for i in range(k):
-        n_cmd = min(max(u[i], 0.0), nmax)
-        if p[model.ON_MOTOR] > 0.5:
-            out[i] = (n_cmd - min(max(xa[i], 0.0), nmax)) / p[model.P_TAU_M]
-        else:
-            out[i] = 0.0
-        if p[model.ON_SERVO] > 0.5:
-            ad = model.servo_rate(xa[k + i], u[k + i], lim, p[model.P_RLIM], p[model.P_TAU_S])
-            bd = model.servo_rate(xa[2 * k + i], u[2 * k + i], lim, p[model.P_RLIM], p[model.P_TAU_S])
-        else:
-            ad, bd = 0.0, 0.0
-        out[k + i], out[2 * k + i] = ad, bd
-        j = 3 * k + model.N_TF_STATES * i
-        if tf_on:
-            drives = (abs(ad), ad, ad, abs(bd), bd)
-            for r in range(5):
-                coef = p[model.P_TF + 8 * r:model.P_TF + 8 * r + 8]
-                model.filter_derivative(xa[j + 4 * r:j + 4 * r + 4], drives[r], coef, out[j + 4 * r:j + 4 * r + 4])
-        else:
-            for r in range(model.N_TF_STATES):
-                out[j + r] = 0.0
-
-
-@njit(cache=True)
-def _act_project(xa, u, p, k):
-    lim = p[model.P_ALIM]
-    for i in range(k):
-        if p[model.ON_MOTOR] < 0.5:
-            xa[i] = min(max(u[i], 0.0), p[model.P_NMAX])
-        for j in (k + i, 2 * k + i):
-            if p[model.ON_SERVO] < 0.5:
-                xa[j] = min(max(u[j], -lim), lim)
-            else:
-                xa[j] = min(max(xa[j], -lim), lim)
+        model.actuator(xa, u, p, k, i, out)
 
 
 @njit(cache=True)
@@ -356,7 +322,7 @@ def _actuator_run(command, p, dt, substeps, xa0):
     for s in range(n):
         u = command[s]
         if s == 0:
-            _act_project(xa, u, p, k)
+            model.actuator_project(xa, u, p, k)
         out[s] = xa
         for _ in range(substeps):
             _act_derivative(xa, u, p, k, k1)
@@ -364,7 +330,7 @@ def _actuator_run(command, p, dt, substeps, xa0):
             _act_derivative(xa + 0.5 * h * k2, u, p, k, k3)
             _act_derivative(xa + h * k3, u, p, k, k4)
             xa = xa + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-            _act_project(xa, u, p, k)
+            model.actuator_project(xa, u, p, k)
     return out
 
 
