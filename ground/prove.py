@@ -208,9 +208,9 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
                    rig_stiffness=None, pilot: str = "scripted", ardusub: bool = False) -> SessionTruth:
     """Fly the pool session on the plant with the TRUE vehicle and write a .tlog at `path`.
 
-    `thrust_fraction` (per unit, 1 = healthy) models a degraded thruster: the unit's propeller
-    reaches sqrt(fraction) of its commanded speed, so its thrust is `fraction` of nominal
-    (T ~ n^2, seed 000 eq. 15). The recorded PWM is what the pilot commanded.
+    `thrust_fraction` (per unit, 1 = healthy) models a degraded thruster as
+    `model.faulty_command` does (a jet's thrust is `fraction` of nominal). The recorded PWM is
+    what the pilot commanded.
     `pilot` names the setpoint generator (PILOTS); `ardusub` records the sensors as ArduSub sends
     them: SCALED_IMU2 (mG, mrad/s integers) and SCALED_PRESSURE2 at the vehicle file's rates.
     """
@@ -223,9 +223,6 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
     sps = PILOTS[pilot](duration_s, seed)
     link = mav.MAVLink(None, srcSystem=1, srcComponent=1)
     rng = np.random.default_rng(seed + 1000)
-    scale = np.ones(3 * k)
-    if thrust_fraction is not None:
-        scale[:k] = np.sqrt(np.asarray(thrust_fraction, float))
     out = []  # (time_s, order, packet)
     t_ctrl = 1.0 / CONTROL_HZ
     n_ctrl = int(round(duration_s * CONTROL_HZ))
@@ -236,7 +233,8 @@ def record_session(truth: Vehicle, path, duration_s: float = 120.0, seed: int = 
         t = step * t_ctrl
         sp = next(s for s in reversed(sps) if s[0] <= t + 1e-9)
         pwm = command_to_pwm(truth, flyer.command(plant.state, sp))
-        plant.set_command(pwm_to_command(truth, pwm) * scale)
+        cmd = pwm_to_command(truth, pwm)
+        plant.set_command(cmd if thrust_fraction is None else model.faulty_command(truth, cmd, thrust_fraction)[0])
         us = int(round(t * 1e6))
         out.append((t, 0, mav.MAVLink_servo_output_raw_message(
             us & 0xFFFFFFFF, 0, *[int(c) for c in pwm]).pack(link)))
@@ -569,8 +567,9 @@ def _effect_family():
                                     check={"sensors.gyro_bias": [0.006 * m, -0.005 * m, 0.004 * m]})),
         ("sensor_delay", lambda m: dict(truth_values={"sensors.delay": cap(0.03 * m, 0.03, 0.12)},
                                         check={"sensors.delay": cap(0.03 * m, 0.03, 0.12)})),
-        ("thruster_fault", lambda m: dict(thrust_fraction=(1.0, 1.0, cap(1 - 0.25 * m, 0.2, 1), 1.0),
-                                          check={"thruster_fault.unit[2].thrust_fraction": cap(1 - 0.25 * m, 0.2, 1)})),
+        ("thruster_fault", lambda m, unit=2: dict(
+            thrust_fraction=tuple(cap(1 - 0.25 * m, 0.2, 1) if i == unit else 1.0 for i in range(4)),
+            check={f"thruster_fault.unit[{unit}].thrust_fraction": cap(1 - 0.25 * m, 0.2, 1)})),
     ]
 
 
@@ -603,7 +602,8 @@ def family_case(split: str, index: int) -> tuple[Case, Flight, float]:
         return Case(f"{split}-{index:03d} control", (), seed=seed), flight, 0.0
     name, build = fam[int(rng.integers(len(fam)))]
     m = float(np.exp(rng.uniform(0.0, math.log(5.0))))
-    fields = build(m)
+    # which jet is faulty comes from the case's seed (it was always the third before 2026-11-25)
+    fields = build(m, seed % 4) if name == "thruster_fault" else build(m)
     expect = (name,)
     if rng.random() < MASK_FRACTION:  # a masking second effect at its classic magnitude
         others = [f for f in fam if f[0] != name and f[0] not in ("thruster_fault",) and name != "thruster_fault"]

@@ -737,3 +737,25 @@ def thrust_newton(v: Vehicle, n, v_axial=0.0, inflow: bool | None = None) -> flo
         p[ON_INFLOW] = 1.0 if inflow else 0.0
     return float(jet_thrust(float(n), float(v_axial), p))
 
+
+def faulty_command(v: Vehicle, command, thrust_fraction=None, curve_gain=None) -> np.ndarray:
+    """Commands (rows of 3 k: speed or thrust per unit, then joints) as a faulty vehicle acts on
+    them: the thruster faults the diagnosis tests and the benchmark conceals, in one place.
+
+    `thrust_fraction` (per unit, 1 = healthy): a jet's propeller reaches sqrt(f) of its commanded
+    speed, so its thrust is f of nominal (T ~ n^2, seed 000 eq. 15); a fixed thruster's command
+    is its thrust (spec 3.1), so it is scaled by f itself, and f < 0 is a thruster that pushes
+    the other way (a reversed motor or propeller). `curve_gain` = (forward, reverse): every fixed
+    thruster's static curve scaled, its forward branch by the first and its reverse branch by the
+    second (a thrust table measured at another voltage or for another propeller)."""
+    c = np.array(command, float, ndmin=2)
+    k, nj = v.n_units, v.n_jets
+    if thrust_fraction is not None:
+        f = np.asarray(thrust_fraction, float)
+        c[:, :nj] *= np.sqrt(np.maximum(f[:nj], 0.0))
+        c[:, nj:k] *= f[nj:k]
+    if curve_gain is not None and k > nj:
+        gf, gr = curve_gain
+        t = c[:, nj:k]
+        c[:, nj:k] = np.where(t > 0, t * gf, t * gr)
+    return c

@@ -37,7 +37,8 @@ CHANNEL_AXIS = (0, 1, 2, 3, 4, 5, 3, 4, 5, 0, 1, 2)  # which body axis each chan
 class CorrectedModel:
     vehicle: Vehicle
     correction: replay.SensorCorrection = field(default_factory=replay.SensorCorrection)
-    thrust_fraction: tuple | None = None  # per unit, 1 = healthy
+    thrust_fraction: tuple | None = None  # per unit, 1 = healthy (model.faulty_command)
+    curve_gain: tuple | None = None  # (forward, reverse) of the fixed thrusters' curve
 
 
 @dataclass(frozen=True)
@@ -49,10 +50,24 @@ class Candidate:
     lower: tuple
     upper: tuple
     switch_on: tuple = ()  # effect ids to enable
+    one_at_a_time: bool = False  # tested one parameter at a time (a fault is in one unit)
+    report_as: str = ""  # the report's effect id when the family is a kind of another
 
     @property
     def n_params(self) -> int:
         return len(self.x0)
+
+    @property
+    def public(self) -> str:
+        """The effect id the report uses (spec/recording.md 2)."""
+        return self.report_as or self.effect
+
+    def subset(self, keep) -> "Candidate":
+        """The candidate with only the parameters `keep` free (the others at their start)."""
+        keep = list(keep)
+        pick = lambda t: tuple(t[i] for i in keep)  # noqa: E731
+        return replace(self, keys=pick(self.keys), x0=pick(self.x0), lower=pick(self.lower),
+                       upper=pick(self.upper), one_at_a_time=False)
 
     def apply(self, theta, base: CorrectedModel) -> CorrectedModel:
         theta = np.asarray(theta, float)
@@ -62,10 +77,15 @@ class Candidate:
         values: dict = {}
         corr = base.correction
         frac = None if base.thrust_fraction is None else list(base.thrust_fraction)
+        gain = base.curve_gain
         for (key, idx), val in zip(self.keys, theta):
             if key.startswith("thruster_fault."):
                 frac = frac or [1.0] * v.n_units
                 frac[idx] = float(val)
+            elif key == CURVE_GAIN:
+                g = list(gain or (1.0, 1.0))
+                g[idx] = float(val)
+                gain = tuple(g)
             elif key == "sensors.gyro_bias":
                 g = list(corr.gyro_bias)
                 g[idx] = float(val)
@@ -84,16 +104,20 @@ class Candidate:
                 values[key] = cur
         if values:
             v = v.with_values(values)
-        return CorrectedModel(v, corr, None if frac is None else tuple(frac))
+        return CorrectedModel(v, corr, None if frac is None else tuple(frac), gain)
 
     def parameters(self, theta, base: Vehicle, deviations: bool = False) -> dict:
         """Fitted values keyed by vehicle-file key, in that key's shape (spec/recording.md 2).
 
         With `deviations`, `theta` holds standard deviations: elements not fitted are 0."""
         out: dict = {}
+        gain = [1.0, 1.0]
         for (key, idx), val in zip(self.keys, np.asarray(theta, float)):
             if key.startswith("thruster_fault."):
                 out[f"thruster_fault.unit[{idx}].thrust_fraction"] = float(f"{val:.4g}")
+                continue
+            if key == CURVE_GAIN:
+                gain[idx] = float(val)
                 continue
             if idx is None:
                 out[key] = float(f"{val:.5g}")
@@ -104,10 +128,35 @@ class Candidate:
                     cur = [0.0] * n if key.startswith("sensors.") or deviations else [float(c) for c in base.get(key)]
                 cur[idx] = float(f"{val:.5g}")
                 out[key] = cur
+        if any(k == CURVE_GAIN for k, _ in self.keys):
+            out.update(_curve_keys(base.fixed_thruster, gain, deviations))
         if not deviations:
             for e in self.switch_on:
                 out[f"effects.{e}.enabled"] = True
         return out
+
+
+CURVE_GAIN = "fixed_thruster.curve_gain"  # internal: (forward, reverse) scale of the fixed curve
+
+
+def _curve_keys(ft, gain, deviations: bool) -> dict:
+    """A fitted (forward, reverse) gain of the fixed thrusters' curve as the vehicle-file keys
+    that carry it, so it can be pasted back: the table's rows (positive entries times the forward
+    gain, negative ones times the reverse gain) or the coefficients `forward` and `reverse`.
+    With `deviations` the gains are standard deviations and each entry gets its own share."""
+    gf, gr = gain
+    if ft.kind == "table":
+        rows = np.asarray(ft.table_thrust, float)
+        new = np.where(rows > 0, rows * gf, rows * gr)
+        if deviations:
+            new = np.abs(new)
+        return {"fixed_thruster.table_thrust": [[float(f"{x:.5g}") for x in r] for r in new]}
+    fw = np.asarray(ft.forward, float) * gf
+    rv = np.asarray(ft.reverse, float) * gr
+    if deviations:
+        fw, rv = np.abs(fw), np.abs(rv)
+    return {"fixed_thruster.forward": [float(f"{x:.5g}") for x in fw],
+            "fixed_thruster.reverse": [float(f"{x:.5g}") for x in rv]}
 
 
 def _vec(effect, kind, key, values, lo_f, hi_f, floor=0.0, switch=()):
@@ -163,8 +212,16 @@ def candidates_for(v: Vehicle) -> list[Candidate]:
                          tuple(s.gyro_bias) + tuple(s.accel_bias), (-0.2,) * 3 + (-2.0,) * 3, (0.2,) * 3 + (2.0,) * 3))
     out.append(Candidate("sensor_delay", "misestimated" if s.delay > 0 else "missing",
                          (("sensors.delay", None),), (s.delay,), (0.0,), (0.5,)))
+    # one degraded unit (a jet's thrust fraction in 0.05-1.5; a fixed two-way thruster's may be
+    # negative: it pushes the wrong way), tested one unit at a time: four free scales would
+    # mimic any common-mode thrust error (eval 216-315: the azimuth transient's thrust loss was
+    # named as all four jets at 0.64-0.72)
     out.append(Candidate("thruster_fault", "missing", tuple((f"thruster_fault.unit{i}", i) for i in range(k)),
-                         (1.0,) * k, (0.05,) * k, (1.5,) * k))
+                         (1.0,) * k, tuple(0.05 if i < v.n_jets else -1.5 for i in range(k)), (1.5,) * k,
+                         one_at_a_time=True))
+    if v.fixed:  # the fixed thrusters' curve wrong: its forward and reverse branches scaled
+        out.append(Candidate("thrust_curve", "misestimated", ((CURVE_GAIN, 0), (CURVE_GAIN, 1)), (1.0, 1.0),
+                             (0.3, 0.3), (2.0, 2.0), report_as="thruster_fault"))
     return out
 
 
@@ -210,14 +267,12 @@ class Evaluator:
 
     def command(self, traj, cm: CorrectedModel, command=None) -> np.ndarray:
         command = traj.command if command is None else command
-        if cm.thrust_fraction is None:
+        if cm.thrust_fraction is None and cm.curve_gain is None:
             return command
-        c = np.array(command)
-        c[:, :self.k] *= np.sqrt(np.asarray(cm.thrust_fraction))
-        return c
+        return model.faulty_command(cm.vehicle, command, cm.thrust_fraction, cm.curve_gain)
 
     def actuators(self, traj, p, cm: CorrectedModel) -> np.ndarray:
-        key = (id(traj), tuple(p[list(ACT_KEYS)]), cm.thrust_fraction)
+        key = (id(traj), tuple(p[list(ACT_KEYS)]), cm.thrust_fraction, cm.curve_gain)
         if key not in self._act:
             if len(self._act) > 64:
                 self._act.clear()

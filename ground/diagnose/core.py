@@ -26,7 +26,7 @@ from .candidates import (CHANNEL_AXIS, CHANNELS, CorrectedModel, Evaluator, Fit,
 UNKNOWN_IF_EXPLAINED_BELOW = 0.5
 SHOOT_S = 2.0  # multiple-shooting window length for the held-out NRMSE
 WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re-fly each from its start)
-RANK_TOP = 4  # significant candidates fitted nonlinearly to rank them
+RANK_TOP = 6  # significant candidates fitted nonlinearly to rank them
 SECOND_MIN_GAIN = 0.15  # a second effect must add this share of the first one's held-out drop
 LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn), at least
 LEAD_TAUS = 5.0  # ... and this many of the actuator subsystem's slowest time constants (lead_seconds)
@@ -53,7 +53,8 @@ PHRASES = {
     "restoring_moment": "follows roll and pitch (righting arm)",
     "imu_bias": "is a steady offset of the IMU against the attitude (and motion capture) and the dynamics",
     "sensor_delay": "lags the commands by a constant time",
-    "thruster_fault": "follows one jet's thrust",
+    "thruster_fault": "follows one thruster's thrust",
+    "thrust_curve": "follows every fixed thruster's thrust, in its own proportion forward and in reverse",
     "unknown": "has a shape no known effect gives",
 }
 
@@ -156,8 +157,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     for c in cands:
         s = by_effect[c.effect]
         if not decide.testable(s, cal):
-            untestable.append({"effect": c.effect, "reason": untestable_reason(c.effect, s, cal, traj, vehicle, rec)})
-    skip = {u["effect"] for u in untestable}
+            untestable.append({"effect": c.public, "kind": c.kind,
+                               "reason": untestable_reason(c.effect, s, cal, traj, vehicle, rec)})
+    skip = {c.effect for c in cands if not decide.testable(by_effect[c.effect], cal)}
     for s in scores:
         _say(progress, f"{s.effect:18s} S = {s.statistic:10.1f}  threshold {cal.threshold[s.effect]:8.1f}"
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")
@@ -169,6 +171,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     single: list[Fit] = []
     for s in pool:
         c = next(c for c in cands if c.effect == s.effect)
+        if s.keep is not None:  # a one-at-a-time family: the part its test chose
+            c = c.subset(s.keep)
         x0 = tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params else None
         f = fit(ev_fit, c, split_fit, res0_fit, x0=x0)
         _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}")
@@ -276,6 +280,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                  "explanation": unknown["explanation"], "formula": unknown["formula"],
                  "heldout_chi2_drop": round(unknown["delta"], 1)}
         findings.append(entry)  # after the calibrated findings (it is not calibrated)
+    public = {c.effect: c.public for c in cands}
+    kinds = {c.effect: c.kind for c in cands}
+    rejected = list(dict.fromkeys(public.get(e, e) for e in rejected))
     est = traj.estimate
     warnings = []
     if cal.draws < MIN_DRAWS:
@@ -332,7 +339,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             "null_max": {k: round(v, 2) for k, v in cal.null_max.items()},
         },
         "candidates": [
-            {"effect": s.effect, "statistic": round(s.statistic, 2), "threshold": round(cal.threshold[s.effect], 2),
+            {"effect": public.get(s.effect, s.effect), "kind": kinds.get(s.effect, "missing"),
+             "statistic": round(s.statistic, 2), "threshold": round(cal.threshold[s.effect], 2),
              "heldout_chi2_drop": None if not math.isfinite(s.holdout_drop) else round(s.holdout_drop, 1),
              "confidence": round(decide.confidence(s, cal, n_fam), 4), "testable": s.effect not in skip}
             for s in sorted(scores, key=lambda s: -s.statistic / cal.threshold[s.effect])
@@ -387,7 +395,7 @@ def _insufficient(rec, vehicle, reason: str, t_start: float) -> Diagnosis:
         "recording": rec.summary(),
         "mismatch": {"signals": {}, "windows": []},
         "findings": [],
-        "untestable": [{"effect": c.effect, "reason": why} for c in candidates_for(vehicle)],
+        "untestable": [{"effect": c.public, "kind": c.kind, "reason": why} for c in candidates_for(vehicle)],
         "rejected": [],
         "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}, "raw": {"before": nan, "after": nan}},
                 "holdout_fraction": 0.0, "method": "none: too little data"},
@@ -482,13 +490,17 @@ def _finding(f: Fit, vehicle: Vehicle, score, cal, n_fam: int) -> dict:
                 axes.append(label)
     explained = max(0.0, min(f.explained, 1.0))
     params = c.parameters(f.theta, vehicle)
-    ptxt = ", ".join(f"{k} = {_fmt(v)}" for k, v in params.items() if not k.endswith(".enabled"))
+    if c.effect == "thrust_curve":  # a table is too long to read in a sentence: its two gains
+        ptxt = (f"the forward branch x{f.theta[0]:.3g} and the reverse branch x{f.theta[1]:.3g} "
+                f"({', '.join(params)} in the parameters)")
+    else:
+        ptxt = ", ".join(f"{k} = {_fmt(v)}" for k, v in params.items() if not k.endswith(".enabled"))
     verb = "adding" if c.kind == "missing" else "correcting"
     what = c.effect.replace("_", " ")
     explanation = (f"{' and '.join(axes) or 'the'} residual {PHRASES.get(c.effect, '')}; {verb} {what}"
                    + (f" with {ptxt}" if ptxt else "")
                    + f" explains {100 * explained:.0f} % of it on held-out data")
-    out = {"effect": c.effect, "kind": c.kind, "confidence": None, "parameters": params,
+    out = {"effect": c.public, "kind": c.kind, "confidence": None, "parameters": params,
            "explanation": explanation, "heldout_chi2_drop": round(f.delta_holdout, 1),
            "explained": round(explained, 3), "bic": round(f.bic, 1), "axes": axes}
     if score is not None and c.n_params and score.effect == c.effect:
@@ -503,7 +515,7 @@ def _finding(f: Fit, vehicle: Vehicle, score, cal, n_fam: int) -> dict:
 
 def _fmt(v):
     if isinstance(v, list):
-        return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)

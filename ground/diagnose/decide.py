@@ -59,6 +59,7 @@ class Score:
     sd: np.ndarray  # Cramer-Rao standard deviation per parameter (before calibration)
     reference: np.ndarray = field(default=None)  # magnitude worth detecting, per parameter
     design: tuple = field(default=None, repr=False)  # (J_tr, J_ho, y_tr, y_ho): weighted regression
+    keep: tuple | None = None  # a one-at-a-time family: the candidate's parameters this score frees
 
 
 @dataclass(frozen=True)
@@ -135,20 +136,36 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
         # a direction the model cannot evaluate (non-finite) carries no evidence
         J_tr = np.nan_to_num(np.column_stack([(f[tr] * w[tr]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         J_ho = np.nan_to_num(np.column_stack([(f[ho] * w[ho]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
-        A = J_tr.T @ J_tr
-        g = J_tr.T @ y_tr
-        ridge = 1e-12 * max(np.trace(A), 1e-300)
-        try:
-            Ainv = np.linalg.inv(A + ridge * np.eye(len(A)))
-        except np.linalg.LinAlgError:
-            Ainv = np.linalg.pinv(A)
-        dth = Ainv @ g
-        S = float(g @ Ainv @ g)
-        drop = float(y_ho @ y_ho - np.sum((y_ho - J_ho @ dth) ** 2))
-        sdp = np.sqrt(np.maximum(np.diag(Ainv), 0.0))
-        out.append(Score(c.effect, max(c.n_params, 1), max(S, 0.0), drop, theta0 + dth, sdp,
-                         reference_magnitude(c, vehicle), (J_tr, J_ho, y_tr, y_ho)))
+        ref = reference_magnitude(c, vehicle)
+        if c.one_at_a_time:  # each parameter alone; the family's statistic is the largest (the
+            # null draws calibrate that same maximum)
+            tests = [_regress(J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho) + ((j,),) for j in range(J_tr.shape[1])]
+            S, drop, dth, sdp, keep = max(tests, key=lambda t: t[0])
+            j = keep[0]
+            out.append(Score(c.effect, 1, S, drop, theta0[[j]] + dth, sdp, ref[[j]],
+                             (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho), keep))
+            continue
+        S, drop, dth, sdp = _regress(J_tr, J_ho, y_tr, y_ho)
+        out.append(Score(c.effect, max(c.n_params, 1), S, drop, theta0 + dth, sdp, ref, (J_tr, J_ho, y_tr, y_ho)))
     return out
+
+
+def _regress(J_tr, J_ho, y_tr, y_ho):
+    """(S, held-out drop, dtheta, sd) of the weighted regression of y on J (module doc)."""
+    A = J_tr.T @ J_tr
+    g = J_tr.T @ y_tr
+    if not np.trace(A) > 0:  # the candidate changes nothing on this recording: no evidence
+        n = A.shape[0]
+        return 0.0, 0.0, np.zeros(n), np.full(n, np.inf)
+    ridge = 1e-12 * np.trace(A)
+    try:
+        Ainv = np.linalg.inv(A + ridge * np.eye(len(A)))
+    except np.linalg.LinAlgError:
+        Ainv = np.linalg.pinv(A)
+    dth = Ainv @ g
+    S = float(g @ Ainv @ g)
+    drop = float(y_ho @ y_ho - np.sum((y_ho - J_ho @ dth) ** 2))
+    return max(S, 0.0), drop, dth, np.sqrt(np.maximum(np.diag(Ainv), 0.0))
 
 
 def joint_gain(a: Score, b: Score) -> tuple[float, float]:

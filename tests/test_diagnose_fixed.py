@@ -1,0 +1,123 @@
+"""Diagnosis of fixed two-way thrusters (issue 17): a degraded or reversed thruster and a wrong
+thrust curve, on BlueROV2 Heavy recordings of `jetloop sim` whose true vehicle hides the fault.
+
+The faults are concealed where a real vehicle has them: a thruster mounted or wired the wrong way
+round is a `[[fixed]]` direction reversed in the TRUE vehicle file; a thrust table measured for
+another supply is `table_thrust` scaled in it. The diagnosis gets the stock bluerov2_heavy."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ground.diagnose.candidates import CorrectedModel, candidates_for
+from ground.prove import vehicle_toml
+from onboard import model
+from onboard.vehicle import DEFAULT_VEHICLE, load_vehicle, parse_vehicle
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = load_vehicle("bluerov2_heavy")
+HEAVY_TEXT = (DEFAULT_VEHICLE.parent / "bluerov2_heavy.toml").read_text()
+
+
+def test_faulty_command_by_hand():
+    """A jet's speed command scales by sqrt(f) (T ~ n^2), a fixed thruster's thrust command by f,
+    its sign too; the curve gains scale forward and reverse thrust apart; joints untouched."""
+    asr4 = load_vehicle(None)
+    c = np.array([[100.0, 100.0, 100.0, 100.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8]])
+    out = model.faulty_command(asr4, c, thrust_fraction=(1.0, 0.25, 1.0, 0.0))
+    assert out[0, :4].tolist() == [100.0, 50.0, 100.0, 0.0] and out[0, 4:].tolist() == c[0, 4:].tolist()
+    t = np.array([[10.0, -10.0, 4.0, -4.0, 0, 0, 0, 0] + [0.0] * 16])
+    out = model.faulty_command(HEAVY, t, thrust_fraction=(1.0, -1.0, 0.5, 1.0, 1, 1, 1, 1))
+    assert out[0, :4].tolist() == [10.0, 10.0, 2.0, -4.0]
+    out = model.faulty_command(HEAVY, t, curve_gain=(0.8, 1.25))
+    assert out[0, :4].tolist() == [8.0, -12.5, 3.2, -5.0]
+    assert model.faulty_command(asr4, c, curve_gain=(0.5, 0.5)).tolist() == c.tolist()  # no fixed thrusters
+
+
+def test_the_fixed_thruster_candidates():
+    """One degraded unit, tested one at a time, may be reversed on a fixed thruster but not on a
+    jet; the curve candidate reports the vehicle-file keys it corrects, as thruster_fault."""
+    cands = {c.effect: c for c in candidates_for(HEAVY)}
+    tf = cands["thruster_fault"]
+    assert tf.one_at_a_time and tf.lower == (-1.5,) * 8
+    assert min(candidates_for(load_vehicle(None))[-1].lower) == 0.05  # asr4's jets cannot push backwards
+    one = tf.subset((2,))
+    cm = one.apply([-1.0], CorrectedModel(HEAVY))
+    assert cm.thrust_fraction == (1, 1, -1.0, 1, 1, 1, 1, 1)
+    assert one.parameters([-1.0], HEAVY) == {"thruster_fault.unit[2].thrust_fraction": -1.0}
+    curve = cands["thrust_curve"]
+    assert curve.public == "thruster_fault" and curve.kind == "misestimated"
+    p = curve.parameters([0.8, 1.25], HEAVY)
+    row = np.asarray(HEAVY.fixed_thruster.table_thrust[0])
+    got = np.asarray(p["fixed_thruster.table_thrust"][0])
+    assert np.allclose(got, np.where(row > 0, 0.8 * row, 1.25 * row), rtol=1e-4)
+    assert "thrust_curve" not in {c.effect for c in candidates_for(load_vehicle(None))}
+
+
+def _commands(path, seconds=90.0, seed=4):
+    """Eight thrusters stepping every 1.5 s to random widths 1500 +- 60-160 us (both ways)."""
+    rng = np.random.default_rng(seed)
+    lines = ["t," + ",".join(f"pwm{c}" for c in range(1, 9))]
+    for t in np.arange(0.0, seconds, 1.5):
+        w = 1500 + rng.choice([-1, 1], 8) * rng.uniform(60, 160, 8) * (rng.random(8) < 0.6)
+        lines.append(f"{t:.1f}," + ",".join(f"{x:.0f}" for x in w))
+    lines.append(f"{seconds:.1f}," + ",".join(["1500"] * 8))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def jetloop(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ground.cli", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def _diagnose(tmp_path, truth_text):
+    (tmp_path / "truth.toml").write_text(truth_text)
+    _commands(tmp_path / "cmds.csv")
+    p = jetloop("sim", "--vehicle", str(tmp_path / "truth.toml"), "--commands", str(tmp_path / "cmds.csv"),
+                "--out", str(tmp_path / "rec.tlog"), "--depth", "3", "--seed", "2", timeout=600)
+    assert p.returncode == 0, p.stderr
+    p = jetloop("diagnose", str(tmp_path / "rec.tlog"), "--vehicle", "bluerov2_heavy", "--quiet",
+                "--json", str(tmp_path / "rep.json"), timeout=900)
+    assert p.returncode == 0, p.stderr
+    return json.loads((tmp_path / "rep.json").read_text())
+
+
+@pytest.mark.slow
+def test_a_reversed_bluerov_thruster_is_named(tmp_path):
+    """Thruster 3 (rear right) pushes the wrong way: the diagnosis names that unit, fraction -1."""
+    reversed3 = HEAVY_TEXT.replace("[[fixed]]   # 3: rear right\n", "[[fixed]]   # 3: rear right, REVERSED\n")
+    head, tail = reversed3.split("# 3: rear right, REVERSED\n")
+    tail = tail.replace("direction = [0.70711, 0.70711, 0.0]", "direction = [-0.70711, -0.70711, 0.0]", 1)
+    truth = parse_vehicle(head + "# 3: rear right, REVERSED\n" + tail)
+    assert truth.fixed[2].direction == (-0.70711, -0.70711, 0.0)
+    rep = _diagnose(tmp_path, head + "# 3: rear right, REVERSED\n" + tail)
+    assert rep["findings"], rep["candidates"]
+    first = rep["findings"][0]
+    assert first["effect"] == "thruster_fault" and first["kind"] == "missing", first
+    assert list(first["parameters"]) == ["thruster_fault.unit[2].thrust_fraction"], first
+    assert first["parameters"]["thruster_fault.unit[2].thrust_fraction"] == pytest.approx(-1.0, abs=0.15)
+    assert rep["fit"]["holdout"]["after"]["total"] < rep["fit"]["holdout"]["before"]["total"]
+
+
+@pytest.mark.slow
+def test_a_wrong_bluerov_thrust_curve_is_named(tmp_path):
+    """The true T200s give 75 % of the table forward and 130 % in reverse: named as the thrust
+    curve misestimated, with the corrected table."""
+    row = np.asarray(HEAVY.fixed_thruster.table_thrust[0])
+    true_row = np.where(row > 0, 0.75 * row, 1.3 * row)
+    truth = HEAVY.with_values({"fixed_thruster.table_thrust": [true_row.tolist()]})
+    rep = _diagnose(tmp_path, vehicle_toml(truth, "# bluerov2_heavy, its T200 curve off"))
+    assert rep["findings"], rep["candidates"]
+    first = rep["findings"][0]
+    assert first["effect"] == "thruster_fault" and first["kind"] == "misestimated", first
+    got = np.asarray(first["parameters"]["fixed_thruster.table_thrust"][0])
+    fwd, rev = row > 5, row < -5  # away from the dead band
+    assert np.median(got[fwd] / row[fwd]) == pytest.approx(0.75, abs=0.1)
+    assert np.median(got[rev] / row[rev]) == pytest.approx(1.3, abs=0.15)
+    assert rep["fit"]["holdout"]["after"]["total"] < rep["fit"]["holdout"]["before"]["total"]
