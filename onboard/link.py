@@ -210,13 +210,19 @@ class _Serial:
         self.port.close()
 
 
+MAX_REPLAY_BYTES = 16_000_000_000  # as ground.recording.MAX_RECORDING_BYTES: a day of telemetry is ~1.5 GB
+
+
 class _Replay:
     """A .tlog read back packet by packet (8-byte big-endian time, then one MAVLink packet)."""
 
     def __init__(self, ep: Endpoint):
+        from .files import read_bounded
+
         try:
-            with open(ep.device, "rb") as f:
-                self.data = f.read()
+            # a regular file only: `tlog:/dev/zero` read until the kernel's OOM killer stopped it
+            # at 23 GB (issue 15 re-run), and a FIFO with no writer blocked open() for good
+            self.data = read_bounded(ep.device, MAX_REPLAY_BYTES)
         except OSError as exc:
             raise LinkError(f"link tlog:{ep.device}: cannot read recording: {exc.strerror or exc}") from exc
         self.pos = 0

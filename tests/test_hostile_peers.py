@@ -320,6 +320,31 @@ def test_onboard_refuses_a_tlog_that_holds_no_mavlink(tmp_path, capsys, content)
     assert "Traceback" not in err[0]
 
 
+def test_onboard_refuses_a_device_or_a_pipe_as_its_tlog(tmp_path):
+    """`jetloop onboard --link tlog:/dev/zero` read the device until the kernel's OOM killer
+    stopped it at 23 GB (issue 15, adversarial re-run), and a FIFO blocked it for good. Run as a
+    child with its address space capped at 3 GB, so that a regression is a MemoryError here and
+    not the machine's memory."""
+    import os
+    import resource
+    import subprocess
+    import sys
+
+    fifo = tmp_path / "pipe.tlog"
+    os.mkfifo(fifo)
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+
+    for source, why in (("/dev/zero", "not a regular file"), (str(fifo), "not a regular file"),
+                        (str(tmp_path), "Is a directory")):
+        p = subprocess.run([sys.executable, "-m", "ground.cli", "onboard", "--link", f"tlog:{source}", "--lockstep"],
+                           capture_output=True, text=True, timeout=120, preexec_fn=cap)
+        err = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and len(err) == 1, (source, p.returncode, p.stderr[-800:])
+        assert err[0].startswith(f"jetloop onboard: link tlog:{source}: cannot read recording: ") and why in err[0], err
+
+
 # -- jetloop onboard itself ----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("args, words", [
