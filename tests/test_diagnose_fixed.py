@@ -121,3 +121,20 @@ def test_a_wrong_bluerov_thrust_curve_is_named(tmp_path):
     assert np.median(got[fwd] / row[fwd]) == pytest.approx(0.75, abs=0.1)
     assert np.median(got[rev] / row[rev]) == pytest.approx(1.3, abs=0.15)
     assert rep["fit"]["holdout"]["after"]["total"] < rep["fit"]["holdout"]["before"]["total"]
+
+
+def test_two_candidates_of_one_effect_say_which_is_untestable():
+    """A BlueROV2 report lists thruster_fault twice (a unit's fault, the curve): the console says
+    which is which."""
+    from ground.diagnose.cli import summary_text
+
+    nan = float("nan")
+    rep = {"findings": [], "untestable": [
+        {"effect": "thruster_fault", "kind": "missing", "reason": "r1"},
+        {"effect": "thruster_fault", "kind": "misestimated", "reason": "r2"},
+        {"effect": "added_mass", "kind": "misestimated", "reason": "r3"}],
+        "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}}}, "mismatch": {"windows": []}}
+    text = summary_text(rep)
+    assert "not testable: thruster_fault (missing): r1" in text
+    assert "not testable: thruster_fault (misestimated): r2" in text
+    assert "not testable: added_mass: r3" in text

@@ -70,8 +70,11 @@ def summary_text(rep: dict) -> str:
             lines.append("   sd: " + ", ".join(f"{k} {v}" for k, v in f["std"].items()))
     for w in rep.get("warnings", []):
         lines.append(f"warning: {w}")
-    for u in rep.get("untestable", []):
-        lines.append(f"not testable: {u['effect']}: {u['reason']}")
+    unt = rep.get("untestable", [])
+    twice = {u["effect"] for u in unt if sum(v["effect"] == u["effect"] for v in unt) > 1}
+    for u in unt:  # an effect listed as two candidates (a unit's fault, the curve) says which
+        kind = f" ({u.get('kind')})" if u["effect"] in twice and u.get("kind") else ""
+        lines.append(f"not testable: {u['effect']}{kind}: {u['reason']}")
     h = rep["fit"]["holdout"]
     fmt = lambda v: f"{v:.3f}" if isinstance(v, (int, float)) and v == v else "n/a"  # noqa: E731
     lines.append(f"held-out NRMSE total: {fmt(h['before']['total'])} -> {fmt(h['after']['total'])}")

@@ -151,8 +151,8 @@ def _page(out: Path, rep: dict, figs: list) -> Path:
     win_rows = "".join(
         f"<tr><td>{w['t0']:.1f}-{w['t1']:.1f}</td><td>{', '.join(w['axes'])}</td><td>{w['score']:.1f}</td>"
         f"<td>{', '.join(w.get('regimes', []))}</td></tr>" for w in rep["mismatch"]["windows"])
-    untest = "".join(f"<tr><td>{html.escape(u['effect'])}</td><td>{html.escape(u['reason'])}</td></tr>"
-                     for u in rep.get("untestable", []))
+    untest = "".join(f"<tr><td>{html.escape(u['effect'])} ({html.escape(u.get('kind', ''))})</td>"
+                     f"<td>{html.escape(u['reason'])}</td></tr>" for u in rep.get("untestable", []))
     cal = rep.get("calibration")
     calib = (f"<p>Decision thresholds calibrated on {cal['null_draws']} null draws of this recording (the nominal "
              f"model re-flown under its commands with its estimated noise): at most {100 * cal['alpha_family']:.2f} % "
