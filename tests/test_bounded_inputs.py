@@ -63,6 +63,8 @@ def test_read_bounded_does_not_wait_for_a_fifo_writer(tmp_path):
     ["diagnose", "/dev/zero"],
     ["plot", "/dev/zero", "--out", "OUT"],
     ["onboard", "--link", "udpin:127.0.0.1:0", "--key", "/dev/zero"],
+    ["identify", "thrust", "/dev/zero"],  # read until memory ran out (issue 15 re-run)
+    ["identify", "free-decay", "/dev/zero", "--spring", "50"],
 ])
 def test_every_command_refuses_a_device_as_a_file_in_one_line(argv, tmp_path, capsys):
     from onboard.cli import __file__ as onboard_cli

@@ -25,12 +25,16 @@ from pathlib import Path
 
 import numpy as np
 
+from onboard.files import read_text_bounded
 from onboard.vehicle import VehicleFileError, fragment_toml, load_vehicle
 
 from .tables import DOFS
 
 METHODS = ("thrust", "free-decay", "pendulum", "tables", "azimuth")
 AXES = ("surge", "sway", "heave")
+
+
+MAX_CSV_BYTES = 512_000_000  # as a commands CSV (hil.sim): a day of samples at 1 kHz is ~100 MB
 
 
 class InputError(ValueError):
@@ -171,7 +175,9 @@ def read_columns(path: str, numeric: tuple, text: tuple = ()) -> dict:
         raise InputError("no input file given")
     p = Path(path)
     try:
-        raw = p.read_text(encoding="utf-8-sig")  # a byte-order mark (spreadsheet exports) is not content
+        # a regular file, bounded (`identify thrust /dev/zero` read until memory ran out, a FIFO
+        # blocked: issue 15 re-run); a byte-order mark (spreadsheet exports) is not content
+        raw = read_text_bounded(p, MAX_CSV_BYTES)
     except (OSError, UnicodeDecodeError) as exc:  # not UTF-8 text: a clear error, not a traceback
         raise InputError(f"{path}: cannot read: {getattr(exc, 'strerror', None) or exc}") from exc
     rows = [(i + 1, r) for i, r in enumerate(csv.reader(raw.splitlines()))
