@@ -807,11 +807,10 @@ def run(args) -> int:
     if args.duration < 60:
         print("jetloop prove: --duration must be at least 60 s (the session needs it)", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        print(f"jetloop prove: cannot create {out}: {exc}", file=sys.stderr)
+    from ground.cli import make_output_dir
+
+    out = make_output_dir(args.out, "jetloop prove")
+    if out is None:
         return 2
     if args.split is not None:
         if args.cases < 1 or args.first < 0 or args.workers < 1:

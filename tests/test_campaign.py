@@ -497,9 +497,9 @@ def test_an_output_entry_of_the_wrong_kind_is_one_line_before_any_task(tmp_path,
 
 
 @pytest.mark.parametrize("argv", [["campaign", str(EXAMPLES / "missions.toml"), "--quiet"], ["demo"],
-                                  ["soak", "--duration", "200"]])
+                                  ["soak", "--duration", "200"], ["prove", "--split", "dev", "--cases", "1"]])
 def test_an_output_directory_that_cannot_be_made_is_one_line(tmp_path, capsys, argv):
-    """campaign, demo and soak share ground.cli.make_output_dir: --out under a regular file."""
+    """campaign, demo, soak and prove share ground.cli.make_output_dir: --out under a regular file."""
     blocker = tmp_path / "a_file"
     blocker.write_text("x")
     assert main([*argv, "--out", str(blocker / "out")]) == 2
