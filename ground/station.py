@@ -48,6 +48,14 @@ ATMOSPHERE_PA = 101325.0
 RHO_G = 1025.0 * 9.80665  # sea water, for SCALED_PRESSURE2 depth when the vehicle sends no depth
 
 
+def printable(text: str) -> str:
+    """Text from the wire as shown to a person: a character that is not printable (an escape
+    sequence, a bell, C1 controls) is written as its escape (\\x1b), so a peer's STATUSTEXT
+    cannot clear the operator's screen, move the cursor or retitle the terminal (issue 15
+    re-run: `jetloop ground --plain` printed them raw)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 @dataclass(frozen=True)
 class Limits:
     """Bounds beyond which the view warns (operator's limits, not the vehicle's)."""
@@ -296,7 +304,7 @@ class Station:
 
     def _statustext(self, m, now_s):
         text = m.text.decode("ascii", "replace") if isinstance(m.text, bytes) else str(m.text)
-        self._event(now_s, f"vehicle says: {text.rstrip(chr(0))}")
+        self._event(now_s, f"vehicle says: {printable(text.rstrip(chr(0)))}")
 
     def _delay(self, now_s: float, vehicle_t: float, window_s: float = 10.0) -> None:
         """Arrival minus vehicle time, above its minimum over the last `window_s` (a window, so

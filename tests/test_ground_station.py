@@ -227,6 +227,17 @@ def test_view_keeps_running_through_garbage_truncation_and_link_loss():
     assert "link LOST  (2 drop(s))" in text and "depth 0.50 m  setpoint 1.25 m" in text
 
 
+def test_a_peers_status_text_cannot_drive_the_operators_terminal():
+    """Issue 15 re-run: a STATUSTEXT holding escape sequences (clear the screen, retitle the
+    terminal, a bell) reached `jetloop ground --plain`'s output raw. They are shown escaped."""
+    st = Station()
+    for m in _packets([_hb(), mavlink.MAVLink_statustext_message(4, b"\x1b[2J\x1b]0;pwn\x07evil\x7f")]):
+        st.update(m, 1.0)
+    frame = render_text(st.snapshot(1.0))
+    assert "vehicle says: \\x1b[2J\\x1b]0;pwn\\x07evil\\x7f" in frame
+    assert not any(not c.isprintable() for line in frame.splitlines() for c in line)
+
+
 def test_ground_cli_once_prints_a_frame_and_rejects_bad_arguments(tmp_path, capsys):
     from ground.cli import main
 
