@@ -51,6 +51,9 @@ ACCEL_MAX_M_S2 = 1000.0  # about 100 g: every IMU saturates well below
 GYRO_MAX_RAD_S = 100.0  # about 5700 deg/s: every IMU saturates well below (ArduPilot: 2000 deg/s)
 PRESS_RANGE_PA = (1.0, 1.2e8)  # vacuum to 12,000 m of water (the deepest ocean)
 ANGLE_MAX_RAD = 4 * np.pi
+# Propeller speed: no thruster's motor turns 200,000 rpm (a T200 tops at ~3,800). Records whose
+# type id a flipped bit turned into ESC's decoded as 11 million rpm (issue 15 re-run, 2 % flips).
+ESC_RPM_MAX = 200_000.0
 POS_MAX_M = 1e6
 
 
@@ -645,7 +648,7 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
         a = decoded["ESC_STATUS"]
         a = a[a["index"] == 0]  # units 1-4
         rpm = np.asarray(a["rpm"], float)
-        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "esc", tally, np.isfinite(rpm).all(axis=1))
+        t, keep = _monotonic(_unwrap_us(a["time_usec"]) / 1e6, "esc", tally, _finite_within(ESC_RPM_MAX, rpm))
         esc = EscStream(_frozen(t), _frozen(rpm[keep]))
     if esc is None and "ESC_TELEMETRY_1_TO_4" in decoded:
         # ESC_TELEMETRY carries no time of its own (it is how ArduSub and our codec send rpm):
@@ -1012,19 +1015,40 @@ def _quiet():
 
 
 def _damaged_fmts(data: bytes) -> list:
-    """Offsets of FMT records (0xA3 0x95 0x80, 89 bytes) whose format string holds a character
-    DFReader has no type for: one such record (a flipped bit) made DFReader refuse the whole log."""
+    """Offsets of FMT records (0xA3 0x95 0x80, 89 bytes) DFReader cannot use, left unframed so
+    that it reads the rest (their type's records are skipped, counted): a format character it has
+    no type for; a column count other than the format's length (DFReader indexes one by the
+    other: IndexError); a length byte other than the format's size; a type id that an FMT of
+    another name claims too, unless its length is the one the type's records frame by (a type id
+    flipped into MULT's redefined MULT, and DFReader died reading the unit tables). Each of these,
+    one flipped bit in any FMT record (UNIT's or GPS's as well as a stream's), made DFReader refuse
+    the whole log (issue 15, adversarial re-run: 16 of 1,824 one-bit flips sampled over all 152 FMT
+    records of small.BIN's first 80 kB)."""
     from pymavlink.DFReader import FORMAT_TO_STRUCT
 
     ok = set(FORMAT_TO_STRUCT)
     out = []
+    by_type: dict = {}
     i = data.find(b"\xa3\x95\x80")
     while 0 <= i <= len(data) - 89:
         fmt = data[i + 9:i + 25].split(b"\0", 1)[0].decode("latin-1")
-        if any(c not in ok for c in fmt):
+        cols = data[i + 25:i + 89].split(b"\0", 1)[0]
+        if (any(c not in ok for c in fmt) or len(cols.split(b",")) != len(fmt)
+                or _fmt_size(fmt) != data[i + 4]):
             out.append(i)
+        else:
+            by_type.setdefault(data[i + 3], []).append(i)
         i = data.find(b"\xa3\x95\x80", i + 3)
-    return out
+    clashes = {t: at for t, at in by_type.items() if t != 0x80 and len({data[j + 5:j + 9] for j in at}) > 1}
+    if clashes:
+        arr = np.frombuffer(data, np.uint8)
+        heads_at = np.nonzero((arr[:-2] == 0xA3) & (arr[1:-1] == 0x95))[0]
+        for t, at in clashes.items():
+            share = {j: _framing(arr, heads_at, t, data[j + 4]) for j in at}
+            best = max(share.values())
+            keep = next(j for j in at if share[j] == best)  # the first of the best
+            out.extend(j for j in at if data[j + 5:j + 9] != data[keep + 5:keep + 9])
+    return sorted(out)
 
 
 # The streams read from a dataflash log, and the columns each needs (_read_dataflash_file).
@@ -1052,6 +1076,11 @@ DF_KNOWN = {
     "BARO": (("QBffcfIffB", "TimeUS,I,Alt,Press,Temp,CRt,SMS,Offset,GndTemp,Health"),),
     "RCOU": (("QHHHHHHHHHHHHHH", "TimeUS,C1,C2,C3,C4,C5,C6,C7,C8,C9,C10,C11,C12,C13,C14"),),
     "ATT": (("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF"),),
+    # DFReader reads these itself (units and multipliers): libraries/AP_Logger/LogStructure.h,
+    # LOG_UNIT_MSG, LOG_FORMAT_UNITS_MSG, LOG_MULT_MSG
+    "UNIT": (("QbZ", "TimeUS,Id,Label"),),
+    "FMTU": (("QBNN", "TimeUS,FmtType,UnitIds,MultIds"),),
+    "MULT": (("Qbd", "TimeUS,Id,Mult"),),
     "ESC": (("QBeffcfcf", "TimeUS,Instance,RPM,Volt,Curr,Temp,CTot,MotTemp,Err"),
             ("QBeffcfcff", "TimeUS,Instance,RPM,Volt,Curr,Temp,CTot,MotTemp,Err,RXErr"),
             ("QBffffcfcf", "TimeUS,Instance,RPM,RawRPM,Volt,Curr,Temp,CTot,MotTemp,Err")),
@@ -1067,9 +1096,18 @@ FMT_OF_FMT = (FMT_HEADER + bytes([0x80, 89]) + b"FMT\0" + b"BBnNZ".ljust(16, b"\
               + b"Type,Length,Name,Format,Columns".ljust(64, b"\0"))
 
 
+# How many flipped bits a damaged FMT record of a known stream may hold and still be mended to the
+# nearest known definition. The definitions of one stream in different firmware (DF_KNOWN) are at
+# least 26 bits apart (ESC with and without RXErr; IMU's are 92 or more), so a record within 8
+# bits of one is at least 18 from any other. One bit covers a single flip; at 2 % of a log's
+# bytes flipped, small.BIN's IMU record took 5 (seed 17), and the whole IMU stream was lost.
+MAX_KNOWN_BITS = 8
+
+
 def _known_fmt(name: str, record: bytes) -> bytes | None:
-    """The length, format and columns fields (record[4], [9:25], [25:89]) of the one known
-    definition of NAME (DF_KNOWN) one bit from this FMT record's, or None (exact, none, or two)."""
+    """The length, format and columns fields (record[4], [9:25], [25:89]) of the known
+    definition of NAME (DF_KNOWN) nearest this FMT record's, within MAX_KNOWN_BITS bits and
+    nearer than any other; None when the record is one exactly, or none (or two) is near."""
     have = record[4:5] + record[9:89]
     near = []
     for fmt, cols in DF_KNOWN.get(name, ()):
@@ -1077,9 +1115,12 @@ def _known_fmt(name: str, record: bytes) -> bytes | None:
         bits = sum(bin(a ^ b).count("1") for a, b in zip(have, want))
         if bits == 0:
             return None
-        if bits == 1:
-            near.append(want)
-    return near[0] if len(near) == 1 else None
+        if bits <= MAX_KNOWN_BITS:
+            near.append((bits, want))
+    near.sort(key=lambda x: x[0])
+    if not near or (len(near) > 1 and near[1][0] == near[0][0]):
+        return None
+    return near[0][1]
 
 
 def _one_bit(a: bytes, b: bytes) -> bool:
@@ -1153,15 +1194,15 @@ def _repair_fmts(data: bytes) -> tuple:
             continue
         if not exact:
             buf[i:i + 3] = FMT_HEADER
-        wanted = [w for w in DF_NEEDED if w.encode() not in names and _one_bit(name.ljust(4, b"\0"), w.encode().ljust(4, b"\0"))]
+        wanted = [w for w in DF_KNOWN if w.encode() not in names and _one_bit(name.ljust(4, b"\0"), w.encode().ljust(4, b"\0"))]
         if len(wanted) == 1:
             name = wanted[0].encode()
             buf[i + 5:i + 9] = name.ljust(4, b"\0")
-        if name.decode("latin-1") not in DF_NEEDED:
+        if name.decode("latin-1") not in DF_KNOWN:
             buf[i:i + 89] = before  # only what is read is mended (a mended MULT made DFReader fail on its records)
             continue
         known = _known_fmt(name.decode("latin-1"), bytes(buf[i:i + 89]))
-        if known is not None:  # one bit from ArduPilot's own definition: that is the record
+        if known is not None:  # a few bits from ArduPilot's own definition: that is the record
             buf[i + 4] = known[0]
             buf[i + 9:i + 89] = known[1:]
             repaired += 1
@@ -1264,6 +1305,7 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
         raise RecordingError(f"{path}: not a readable dataflash log: {exc}") from exc
     rows: dict = {"IMU": [], "BARO": [], "RCOU": [], "ATT": [], "ESC": []}
     log_times: list = []  # TimeUS of every record of every type: the log's own clock, for _trim_tails
+    bad_decode = 0  # records DFReader framed but could not decode: counted in bad_records
     counts: dict = {}
     used_bytes = 0
     while True:
@@ -1277,13 +1319,17 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
         counts[name] = counts.get(name, 0) + 1
         fmt = getattr(m, "fmt", None)
         used_bytes += getattr(fmt, "len", 0) or 0
-        if name in rows:
-            rows[name].append(m.to_dict())
-        t_us = getattr(m, "TimeUS", None)
+        try:  # a record DFReader framed but cannot decode (its FMT damaged past what is mended)
+            if name in rows:
+                rows[name].append(m.to_dict())
+            t_us = getattr(m, "TimeUS", None)
+        except (IndexError, KeyError, ValueError, TypeError, struct.error):
+            bad_decode += 1
+            continue
         if isinstance(t_us, (int, float)) and not isinstance(t_us, bool):
             log_times.append(t_us)
     tally = _Tally()
-    bad = [bad_fmts]  # damaged FMT records, then records of a used type that cannot be read
+    bad = [bad_fmts + bad_decode]  # damaged FMT records, undecodable records, then records of a used type that cannot be read
     imu = pressure = servo = attitude = esc = None
     # A damaged FMT record can rename a type's columns or change their types: a record without
     # the columns a stream needs, or with a value that is not a number, is counted, not used.
@@ -1319,7 +1365,7 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
         times = np.unique(esc_rows[:, 0])  # sorted; NaN times (if any) each their own row, then dropped
         rpm = np.zeros((len(times), 4))
         rpm[np.searchsorted(times, esc_rows[:, 0]), esc_rows[:, -1].astype(int)] = esc_rows[:, 1]
-        t, keep = _monotonic(times / 1e6, "esc", tally, np.isfinite(rpm).all(axis=1))
+        t, keep = _monotonic(times / 1e6, "esc", tally, _finite_within(ESC_RPM_MAX, rpm))
         esc = EscStream(_frozen(t), _frozen(rpm[keep]))
     if not counts:
         raise RecordingError(f"{path}: no dataflash records found")
