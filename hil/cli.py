@@ -159,8 +159,10 @@ def _json_sitl(args, vehicle) -> int:
         print("jetloop hil: --json-sitl listens for SITL's servo packets: use --link udpin:HOST:PORT", file=sys.stderr)
         return 2
     backend = JsonSitlBackend(vehicle, seed=args.seed, depth_m=args.depth)
+    heavy = len(vehicle.fixed) == 8  # ArduSub's default frame drives six thrusters, the heavy frame eight
     print(f"jetloop hil: SITL JSON physics for {vehicle.name} on udp {ep.host}:{ep.port} (start ArduSub SITL "
-          f"with --model JSON:127.0.0.1 -l 33.810313,-118.393867,0,185: a sea-level home)", flush=True)
+          f"with --model JSON:127.0.0.1 -l 33.810313,-118.393867,0,185{' -f vectored_6dof' if heavy else ''}: "
+          f"a sea-level home{', the eight-thruster heavy frame' if heavy else ''})", flush=True)
     try:
         backend.serve(ep.host, ep.port, duration_s=args.duration)
     except OSError as exc:

@@ -232,6 +232,15 @@ def test_jetloop_hil_json_sitl_command():
     assert [r["timestamp"] for r in replies] == pytest.approx([k / 400 for k in range(1, 21)])
     assert rc == 0, err
     assert "20 frames" in out
+    assert "-f vectored_6dof" not in out  # asr4 is not ArduSub's heavy frame
+
+
+def test_jetloop_hil_json_sitl_names_the_heavy_frame_for_the_bluerov():
+    """The start-up line a user copies: for the eight-thruster BlueROV2 Heavy it carries
+    `-f vectored_6dof` (without it ArduSub's default frame leaves thrusters 7 and 8 idle)."""
+    replies, rc, out, err = _run_jetloop_hil_json_sitl(["--vehicle", "bluerov2_heavy"], [1500] * 16, 5)
+    assert rc == 0, err
+    assert "-l 33.810313,-118.393867,0,185 -f vectored_6dof" in out.splitlines()[0], out
 
 
 def test_jetloop_hil_jet_neutral_makes_1500_us_no_thrust():
