@@ -135,6 +135,21 @@ def test_two_candidates_of_one_effect_say_which_is_untestable():
         {"effect": "added_mass", "kind": "misestimated", "reason": "r3"}],
         "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}}}, "mismatch": {"windows": []}}
     text = summary_text(rep)
+    assert "no finding: the nominal model explains the recording within its noise" in text
     assert "not testable: thruster_fault (missing): r1" in text
     assert "not testable: thruster_fault (misestimated): r2" in text
     assert "not testable: added_mass: r3" in text
+
+
+def test_a_withdrawn_finding_is_not_called_an_explained_recording():
+    """small.tlog with the BlueROV2: an IMU bias passes its calibrated test, but no held-out
+    stretch can show it fits better, so it is withdrawn; the console must not then say that the
+    nominal model explains the recording."""
+    from ground.diagnose.cli import summary_text
+
+    nan = float("nan")
+    rep = {"findings": [], "rejected": ["imu_bias"], "untestable": [],
+           "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}}}, "mismatch": {"windows": []}}
+    text = summary_text(rep)
+    assert "explains the recording" not in text
+    assert text.startswith("no finding named: imu_bias passed the calibrated test but was withdrawn")

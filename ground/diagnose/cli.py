@@ -62,7 +62,10 @@ def run(args) -> int:
 
 def summary_text(rep: dict) -> str:
     lines = []
-    if not rep["findings"]:
+    if not rep["findings"] and rep.get("rejected"):  # significant, but not shown to fit better
+        lines.append(f"no finding named: {', '.join(rep['rejected'])} passed the calibrated test but was withdrawn, "
+                     "its held-out fit not shown to be better than the nominal model's")
+    elif not rep["findings"]:
         lines.append("no finding: the nominal model explains the recording within its noise")
     for i, f in enumerate(rep["findings"]):
         lines.append(f"{i + 1}. {f['effect']} ({f['kind']}, confidence {f['confidence']:.2f}): {f['explanation']}")

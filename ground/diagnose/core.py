@@ -244,7 +244,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     if (chosen or unknown is not None or bias_named) and not shots["total_after"] < shots["total_before"]:
         rejected = ([f.candidate.effect for f in chosen] + (["unknown"] if unknown is not None else [])
                     + (["imu_bias"] if bias_named else []))
-        _say(progress, f"rejected {', '.join(rejected)}: the held-out fit is not better than the nominal's")
+        _say(progress, f"rejected {', '.join(rejected)}: " + (
+            "the held-out fit is not better than the nominal's" if math.isfinite(shots["total_before"])
+            else "no held-out stretch long enough to show that the fit is not worse"))
         alternatives = ([("imu_bias", None)] if bias_named and (chosen or unknown is not None) else []) + [
             (f.candidate.effect, f) for f in single if all(f is not c for c in chosen)]  # (Fit holds arrays: ==)
         chosen, final, unknown, bias_named = [], None, None, False
