@@ -140,6 +140,7 @@ class Recording:
     esc: EscStream | None = None
     mocap: MocapStream | None = None
     vehicle_id: tuple = (1, 1)  # (system, component) whose messages were used
+    parameters: dict = field(default_factory=dict)  # the autopilot's parameters in the log, last value each
 
     @property
     def streams(self) -> dict:
@@ -561,7 +562,25 @@ def decode_message(buf, off, plen, mid, name: str):
 
 
 WANTED = ("HEARTBEAT", "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "SCALED_PRESSURE2",
-          "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ESC_TELEMETRY_1_TO_4", "ATT_POS_MOCAP")
+          "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ESC_TELEMETRY_1_TO_4", "ATT_POS_MOCAP", "PARAM_VALUE")
+MAX_PARAMETERS = 20000  # ArduSub has about 1000; a hostile log cannot grow the dict past this
+
+
+def _parameters(pairs) -> dict:
+    """{name: value} of (name, value) pairs in log order, the last value of each name kept: names
+    of 1-16 printable ASCII characters, finite values, at most MAX_PARAMETERS names."""
+    out: dict = {}
+    for name, value in pairs:
+        if isinstance(name, bytes):
+            name = name.split(b"\0", 1)[0].decode("ascii", "replace")
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            continue
+        if (0 < len(name) <= 16 and name.isascii() and name.isprintable() and math.isfinite(value)
+                and (name in out or len(out) < MAX_PARAMETERS)):
+            out[name] = value
+    return out
 
 
 def _log_clock_reference(decoded, ts, use, mid, name_to_id):
@@ -671,8 +690,12 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
     imu, pressure, servo, attitude, esc, mocap = _trim_tails((imu, pressure, servo, attitude, esc, mocap), tally)
     skipped_info = Skipped(int(bad_crc), int(skipped), int(truncated), int(unknown), tally.nonmono,
                            tuple(tally.gaps), 0, tally.out_of_range, tally.bad_time)
+    params = {}
+    if "PARAM_VALUE" in decoded:
+        a = decoded["PARAM_VALUE"]
+        params = _parameters(zip(a["param_id"], a["param_value"]))
     return Recording(str(path), "tlog", counts, skipped_info, imu, pressure, servo, attitude, esc,
-                     mocap, vehicle)
+                     mocap, vehicle, params)
 
 
 def _vehicle_source(buf, off, plen, mid, src, d) -> tuple:
@@ -1303,7 +1326,7 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
         log = DFReader.DFReader_binary(read_path, zero_time_base=False)
     except Exception as exc:  # DFReader raises bare exceptions on unusable headers
         raise RecordingError(f"{path}: not a readable dataflash log: {exc}") from exc
-    rows: dict = {"IMU": [], "BARO": [], "RCOU": [], "ATT": [], "ESC": []}
+    rows: dict = {"IMU": [], "BARO": [], "RCOU": [], "ATT": [], "ESC": [], "PARM": []}
     log_times: list = []  # TimeUS of every record of every type: the log's own clock, for _trim_tails
     bad_decode = 0  # records DFReader framed but could not decode: counted in bad_records
     counts: dict = {}
@@ -1377,7 +1400,9 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
     imu, pressure, servo, attitude, esc = _trim_tails((imu, pressure, servo, attitude, esc), tally, ref)
     skipped_info = Skipped(0, skipped_bytes, 0, 0, tally.nonmono, tuple(tally.gaps), bad[0],
                            tally.out_of_range, tally.bad_time)
-    return Recording(str(path), "dataflash", counts, skipped_info, imu, pressure, servo, attitude, esc)
+    params = _parameters((r.get("Name"), r.get("Value")) for r in rows["PARM"] if isinstance(r.get("Name"), str))
+    return Recording(str(path), "dataflash", counts, skipped_info, imu, pressure, servo, attitude, esc,
+                     parameters=params)
 
 
 def _df_columns(rows: list, need: tuple, bad: list, *optional: str) -> np.ndarray:

@@ -87,3 +87,29 @@ def pwm_of_thrust(ft: FixedThruster, thrust_n) -> np.ndarray:
     out[pos] = np.interp(T[pos], ft_, fx)
     out[neg] = np.interp(T[neg], rt, rx)
     return out
+
+
+# ArduSub's motor outputs: SERVOn_FUNCTION 33-40 are Motor1-8, 82-85 Motor9-12 (SRV_Channel.h).
+_MOTOR_FUNCTIONS = {**{33 + m: m + 1 for m in range(8)}, **{82 + m: m + 9 for m in range(4)}}
+
+
+def ardusub_directions(parameters: dict, vehicle) -> tuple | None:
+    """Per unit (jets first, then the fixed thrusters), the sign ArduSub applied to each fixed
+    thruster's thrust, from the autopilot's parameters a recording carries: MOT_n_DIRECTION = -1
+    mirrors motor n's demand before its PWM (AP_Motors6DOF.cpp, output_armed_stabilizing:
+    _thrust_rpyt_out[i] = _motor_reverse[i] * (...)), for a motor mounted or wired the other way
+    round, so the recorded PWM of that motor pushes against the vehicle file's `direction`. Motor
+    n of fixed thruster i is the motor whose SERVOc_FUNCTION its channel c carries (motor c where
+    the log does not say). None when nothing is reversed or the vehicle has no fixed thrusters."""
+    if not vehicle.fixed or not parameters:
+        return None
+    signs = []
+    for c in vehicle.pwm.fixed_channels:
+        fn = parameters.get(f"SERVO{int(c)}_FUNCTION")
+        motor = _MOTOR_FUNCTIONS.get(int(fn)) if fn is not None and float(fn).is_integer() else None
+        motor = int(c) if fn is None else motor
+        d = parameters.get(f"MOT_{motor}_DIRECTION") if motor is not None else None
+        signs.append(-1.0 if d is not None and d < 0 else 1.0)
+    if all(s > 0 for s in signs):
+        return None
+    return (1.0,) * vehicle.n_jets + tuple(signs)

@@ -71,8 +71,8 @@ def test_identify_of_a_jet_method_names_the_vehicle_without_jets():
 
 @needs_ardusub
 def test_replay_starts_from_the_recorded_attitude_and_depth_and_turns_on_the_recorded_burst():
-    """small.tlog: at 903.7 s motors 1-4 all ran above neutral for ~1 s; through the model (stock
-    ArduSub directions) that is a yaw moment of about -1.5 N m: the model turns tens of degrees,
+    """small.tlog: at 903.7 s motors 1-4 all ran above neutral for ~1 s; through the model, with
+    the log's own motor directions (MOT_1/2/5/8_DIRECTION = -1), the model turns tens of degrees,
     the recording under 3 (README: what these logs allow to conclude)."""
     from ground.plot import replay_fixed
     from onboard.sensors import depth_from_pressure
@@ -97,3 +97,17 @@ def test_plot_page_has_the_replay_for_the_bluerov(tmp_path):
     assert s["panels"]["replay"] == ""
     assert (tmp_path / "replay.png").stat().st_size > 5000
     assert 'src="replay.png"' in (tmp_path / "index.html").read_text()
+
+
+@needs_ardusub
+def test_the_logs_carry_the_autopilots_motor_directions():
+    """PARAM_VALUE (tlog) and PARM (dataflash) are kept; ArduSub's MOT_n_DIRECTION = -1 reverses
+    the thrusters on those motors in the model (onboard.fixed.ardusub_directions)."""
+    from onboard.fixed import ardusub_directions
+
+    tl = read_recording(ARDUSUB / "small.tlog").parameters
+    assert len(tl) == 887 and tl["FRAME_CONFIG"] == 2.0 and tl["MOT_1_DIRECTION"] == -1.0
+    assert ardusub_directions(tl, HEAVY) == (-1.0, -1.0, 1.0, 1.0, -1.0, 1.0, 1.0, -1.0)
+    df = read_recording(ARDUSUB / "small.BIN").parameters
+    assert df["FRAME_CONFIG"] == 1.0 and df["SERVO7_FUNCTION"] == 0.0  # a six-thruster BlueROV2
+    assert ardusub_directions(df, HEAVY) == (-1.0, -1.0, 1.0, -1.0, -1.0, 1.0, 1.0, 1.0)

@@ -153,3 +153,37 @@ def test_a_withdrawn_finding_is_not_called_an_explained_recording():
     text = summary_text(rep)
     assert "explains the recording" not in text
     assert text.startswith("no finding named: imu_bias passed the calibrated test but was withdrawn")
+
+
+def test_ardusub_directions_by_hand():
+    """The motor on a thruster's channel is the one its SERVOc_FUNCTION names (33-40: Motor1-8);
+    a reversed motor reverses that thruster; nothing reversed, or no fixed thrusters: None."""
+    from onboard.fixed import ardusub_directions
+
+    assert ardusub_directions({"MOT_3_DIRECTION": -1.0}, HEAVY) == (1, 1, -1, 1, 1, 1, 1, 1)
+    swapped = {"SERVO1_FUNCTION": 35.0, "SERVO3_FUNCTION": 33.0, "MOT_3_DIRECTION": -1.0}  # motor 3 on channel 1
+    assert ardusub_directions(swapped, HEAVY) == (-1, 1, 1, 1, 1, 1, 1, 1)
+    assert ardusub_directions({"SERVO2_FUNCTION": 0.0, "MOT_2_DIRECTION": -1.0}, HEAVY) is None  # no motor there
+    assert ardusub_directions({"MOT_1_DIRECTION": 1.0}, HEAVY) is None
+    assert ardusub_directions({"MOT_1_DIRECTION": -1.0}, load_vehicle(None)) is None
+
+
+def test_a_fault_is_relative_to_the_logs_motor_directions():
+    """With unit 1 reversed by the autopilot, the fault candidate's fraction 1 leaves it reversed
+    and -1 would mean it is reversed once more (the motor wired the other way as well)."""
+    base = CorrectedModel(HEAVY, thrust_fraction=(-1.0, 1, 1, 1, 1, 1, 1, 1))
+    tf = {c.effect: c for c in candidates_for(HEAVY)}["thruster_fault"].subset((0,))
+    assert tf.apply([1.0], base).thrust_fraction == base.thrust_fraction
+    assert tf.apply([0.5], base).thrust_fraction[0] == -0.5
+
+
+def test_a_log_s_parameters_are_bounded_and_clean():
+    """Hostile PARAM_VALUE rows: unprintable or empty names, NaN and inf are dropped, the last
+    value of a name wins, and no log can hold more than MAX_PARAMETERS names."""
+    from ground.recording import MAX_PARAMETERS, _parameters
+
+    got = _parameters([(b"MOT_1_DIRECTION\0", 1.0), (b"MOT_1_DIRECTION", -1.0), (b"\x1b[2J", 1.0), (b"", 1.0),
+                       (b"A", float("nan")), (b"B", float("inf")), ("C" * 17, 1.0), ("OK", "x")])
+    assert got == {"MOT_1_DIRECTION": -1.0}
+    many = _parameters((f"P{i}", float(i)) for i in range(MAX_PARAMETERS + 50))
+    assert len(many) == MAX_PARAMETERS

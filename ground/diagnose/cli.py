@@ -71,6 +71,9 @@ def summary_text(rep: dict) -> str:
         lines.append(f"{i + 1}. {f['effect']} ({f['kind']}, confidence {f['confidence']:.2f}): {f['explanation']}")
         if f.get("std"):
             lines.append("   sd: " + ", ".join(f"{k} {v}" for k, v in f["std"].items()))
+    if rep.get("reversed_by_autopilot"):
+        lines.append(f"thrusters {rep['reversed_by_autopilot']} reversed by the autopilot (the log's MOT_n_DIRECTION): "
+                     "modelled pushing against their `direction`")
     for w in rep.get("warnings", []):
         lines.append(f"warning: {w}")
     unt = rep.get("untestable", [])

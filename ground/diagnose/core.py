@@ -106,6 +106,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     except replay.TooShort as exc:
         return _insufficient(rec, vehicle, str(exc).split(": ", 1)[-1], t_start)
     traj = ev.traj0
+    signs = ev.base.thrust_fraction  # the log's motor directions (onboard.fixed.ardusub_directions)
+    reversed_units = [i + 1 for i, f in enumerate(signs or ()) if f < 0]
+    if reversed_units:
+        _say(progress, f"the log's MOT_n_DIRECTION reverse thruster(s) {reversed_units}: the model pushes them the other way")
     res0 = ev.residual(ev.base)
     noise = locate.noise_realisation(ev, res0)
     split = locate.make_split(traj, noise)
@@ -316,6 +320,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         },
         "findings": findings,
         "warnings": warnings,
+        **({"reversed_by_autopilot": reversed_units} if reversed_units else {}),
         "untestable": untestable,
         "rejected": rejected,
         "fit": {
