@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import ARDUSUB
 
 from ground.diagnose.candidates import CorrectedModel, candidates_for
 from ground.prove import vehicle_toml
@@ -153,6 +154,8 @@ def test_a_withdrawn_finding_is_not_called_an_explained_recording():
     text = summary_text(rep)
     assert "explains the recording" not in text
     assert text.startswith("no finding named: imu_bias passed the calibrated test but was withdrawn")
+    rep["rejected"] = ["added_mass", "buoyancy"]
+    assert summary_text(rep).startswith("no finding named: added_mass, buoyancy passed the calibrated test but were")
 
 
 def test_ardusub_directions_by_hand():
@@ -187,3 +190,19 @@ def test_a_log_s_parameters_are_bounded_and_clean():
     assert got == {"MOT_1_DIRECTION": -1.0}
     many = _parameters((f"P{i}", float(i)) for i in range(MAX_PARAMETERS + 50))
     assert len(many) == MAX_PARAMETERS
+
+
+@pytest.mark.usefixtures("ardusub_data")
+@pytest.mark.parametrize("with_vehicle, expect", [(False, 5), (True, 2)])
+def test_scoring_windows_sit_where_the_thrusters_ran(with_vehicle, expect):
+    """small.tlog idles for minutes around its 15 s armed stretch (900.7-915.7 s): given the
+    vehicle, the scoring windows are the ones where a thruster is commanded; without it (and on
+    every benchmark recording, where the jets always run) they are spread over the whole log."""
+    from ground.diagnose.core import fit_windows
+    from ground.recording import read_recording
+
+    rec = read_recording(ARDUSUB / "small.tlog")
+    w = fit_windows(rec, 120.0, HEAVY if with_vehicle else None)
+    assert len(w) == expect
+    if with_vehicle:
+        assert w[0][0] <= 903.7 <= w[-1][1] and all(900.7 - 20 <= a and b <= 915.7 + 20 for a, b in w)

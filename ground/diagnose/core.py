@@ -76,9 +76,11 @@ def _say(progress, msg):
         progress(msg)
 
 
-def fit_windows(rec, max_fit_s: float) -> list[tuple[float, float]]:
+def fit_windows(rec, max_fit_s: float, vehicle: Vehicle | None = None) -> list[tuple[float, float]]:
     """[(t0, t1)] of the fitting windows: WINDOW_S each, at most max_fit_s in all, spread evenly
-    over the recording's segments (every regime stays represented; a gap never inside one)."""
+    over the recording's segments (every regime stays represented; a gap never inside one).
+    With `vehicle`, windows where no thruster is ever commanded are left out while any other is
+    (a real log idles for minutes around a short armed stretch: small.tlog's 15 s of 264 s)."""
     out = []
     imu = rec.imu.time_s
     win = max(WINDOW_S, 40.0 * float(np.median(np.diff(imu)))) if len(imu) > 1 else WINDOW_S  # slow IMUs
@@ -89,6 +91,16 @@ def fit_windows(rec, max_fit_s: float) -> list[tuple[float, float]]:
         bounds = rec.segment_bounds() or [(rec.t_start_s, rec.t_end_s)]
         a, b = max(bounds, key=lambda s: s[1] - s[0])
         return [(a, b)]
+    if vehicle is not None and rec.servo is not None and len(rec.servo.time_s):
+        thrust = np.abs(replay.pwm_to_commands(vehicle, rec.servo.pwm_us)[:, :vehicle.n_units]).max(axis=1)
+        t = rec.servo.time_s
+        # a window is actuated when a command in force during it (the last one before it, held,
+        # or one inside it) asks for thrust
+        i0 = np.clip(np.searchsorted(t, [w[0] for w in out], side="right") - 1, 0, len(t) - 1)
+        i1 = np.searchsorted(t, [w[1] for w in out], side="left")
+        active = [bool(thrust[i:max(i + 1, j)].max() > 0) for i, j in zip(i0, i1)]
+        if any(active):
+            out = [w for w, on in zip(out, active) if on]
     keep = max(1, int(max_fit_s // win))
     if len(out) > keep:
         out = [out[i] for i in np.unique(np.round(np.linspace(0, len(out) - 1, keep)).astype(int))]
@@ -118,7 +130,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     windows = locate.flag_windows(traj, res0, noise, split, vehicle, act0)
     _say(progress, f"{len(windows)} window(s) above the noise floor")
     # --- candidates, scored on short windows spread over the recording (the null draws re-fly them)
-    spans = fit_windows(rec, max_fit_s)
+    spans = fit_windows(rec, max_fit_s, vehicle)
     recs_w = []
     for a, b in spans:  # a window whose streams do not overlap enough is left out
         w = rec.between(a, b)
@@ -272,7 +284,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                     chosen, final, final_res = [f], f, ev.residual(f.model)
                 break
             rejected.append(effect)
-            _say(progress, f"rejected {effect} alone: the held-out fit is not better than the nominal's")
+            _say(progress, f"rejected {effect} alone: " + (
+                "the held-out fit is not better than the nominal's" if math.isfinite(alt["total_before"])
+                else "no held-out stretch long enough to show that the fit is not worse"))
         named = {f.candidate.effect for f in chosen} | ({"imu_bias"} if bias_named else set())
         rejected = [e for e in dict.fromkeys(rejected) if e not in named]
     res1 = final_res
