@@ -744,6 +744,13 @@ def family_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+MAX_FAMILY_JSON_BYTES = 256 * 1024 * 1024  # ~1 kB a case: far beyond any run
+
+
+class ProveError(ValueError):
+    """A benchmark run that cannot start; the message is the one line the user sees."""
+
+
 def run_family(split: str, n: int, out: Path, workers: int = 2, first: int = 0, progress=None) -> list[dict]:
     """Cases first..first+n-1 of `split`, on a process pool; family.json rewritten as each ends."""
     import concurrent.futures as cf
@@ -753,9 +760,15 @@ def run_family(split: str, n: int, out: Path, workers: int = 2, first: int = 0, 
     path = out / "family.json"
     done = {}
     if path.exists():  # resume: cases already done are kept
+        from onboard.files import read_text_bounded
+
+        try:  # a regular file of a sane size (a FIFO or /dev/zero there must not hang or fill memory)
+            text = read_text_bounded(path, MAX_FAMILY_JSON_BYTES)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ProveError(f"cannot resume from {path}: {getattr(exc, 'strerror', None) or exc}") from exc
         try:
-            done = {(r["split"], r["index"]): r for r in json.loads(path.read_text())["cases"] if "error" not in r}
-        except (ValueError, KeyError):
+            done = {(r["split"], r["index"]): r for r in json.loads(text)["cases"] if "error" not in r}
+        except (ValueError, KeyError, TypeError):
             done = {}
     todo = [i for i in range(first, first + n) if (split, i) not in done]
     rows = [done[(split, i)] for i in range(first, first + n) if (split, i) in done]
@@ -824,7 +837,11 @@ def run(args) -> int:
                                     args.vehicle, quiet=args.quiet)
             (out / "family.json").write_text(json.dumps({"split": args.split, "cases": rows}, indent=1) + "\n")
         else:
-            rows = run_family(args.split, args.cases, out, args.workers, args.first, say)
+            try:
+                rows = run_family(args.split, args.cases, out, args.workers, args.first, say)
+            except ProveError as exc:
+                print(f"jetloop prove: {exc}", file=sys.stderr)
+                return 2
         text = family_table(rows)
         (out / "family.md").write_text(text + "\n")
         print(text)

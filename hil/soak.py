@@ -693,6 +693,13 @@ class SoakResult:
     memory: list = field(default_factory=list)
 
 
+MAX_SOAK_S = 7 * 86400.0  # a week simulated (an hour takes about half an hour here): beyond it, a typo
+
+
+class NoMission(ValueError):
+    """The duration holds no whole random mission."""
+
+
 def run_soak(vehicle: Vehicle, duration_s: float, seed: int, out_dir: Path, say=None,
              warmup_s: float | None = None, faults: bool = True, sample_s: float = MINUTE_S,
              wall_limit_s: float | None = None, re_time: bool = True) -> dict:
@@ -700,7 +707,7 @@ def run_soak(vehicle: Vehicle, duration_s: float, seed: int, out_dir: Path, say=
     `re_time`: afterwards re-execute the logged CPU overruns from the recording (`retime`)."""
     schedule = make_schedule(vehicle, duration_s, seed, faults=faults)
     if not schedule.missions:
-        raise ValueError(f"duration {duration_s:g} s holds no whole random mission; use at least 120 s")
+        raise NoMission(f"duration {duration_s:g} s holds no whole random mission; use at least 120 s")
     out_dir = Path(out_dir)
     if say:
         say("warming up: 6 s flown in this process through every path, so no control step compiles")
@@ -999,8 +1006,9 @@ def configure(parser) -> None:
 def run(args) -> int:
     from onboard.vehicle import VehicleFileError, require_jets
 
-    if not (math.isfinite(args.duration) and args.duration > 0):
-        print(f"jetloop soak: --duration must be a positive number of seconds, got {args.duration}", file=sys.stderr)
+    if not (math.isfinite(args.duration) and 0 < args.duration <= MAX_SOAK_S):
+        print(f"jetloop soak: --duration must be a number of seconds in (0, {MAX_SOAK_S:.0f}] (a week), "
+              f"got {args.duration:g}", file=sys.stderr)
         return 2
     try:
         vehicle = load_vehicle(args.vehicle)
@@ -1021,6 +1029,9 @@ def run(args) -> int:
     try:
         summary = run_soak(vehicle, args.duration, args.seed, out, say=say, faults=not args.no_faults,
                            wall_limit_s=args.wall_limit, re_time=not args.no_retime)
+    except NoMission as exc:  # the duration is too short for the schedule: a usage error
+        print(f"jetloop soak: {exc}", file=sys.stderr)
+        return 2
     except (EndpointError, ValueError) as exc:
         print(f"jetloop soak: {exc}", file=sys.stderr)
         return 1

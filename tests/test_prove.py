@@ -143,3 +143,16 @@ def test_benchmark_subset(index, tmp_path):
     else:
         assert row["top2"], f"expected {row['expect']}, named {row['named']}"
         assert row["nrmse_after"] <= row["nrmse_before"]
+
+
+def test_a_family_json_that_is_not_a_file_is_one_line(tmp_path, capsys):
+    """Resuming reads family.json bounded: a FIFO there (or a device) is one line, exit 2, never a
+    hang or memory filled (issue 15 hardening, found by its second adversarial run)."""
+    import os
+
+    from ground.cli import main
+
+    os.mkfifo(tmp_path / "family.json")
+    assert main(["prove", "--split", "dev", "--cases", "1", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"jetloop prove: cannot resume from {tmp_path / 'family.json'}: not a regular file (a device, pipe or directory)"

@@ -308,10 +308,12 @@ def test_cli_refuses_bad_input_with_a_message(tmp_path, capsys):
     from ground.cli import main
 
     assert main(["soak", "--duration", "-5", "--out", str(tmp_path)]) == 2
-    assert "--duration must be a positive number of seconds, got -5" in capsys.readouterr().err
+    assert "--duration must be a number of seconds in (0, 604800] (a week), got -5" in capsys.readouterr().err
+    assert main(["soak", "--duration", "1e12", "--out", str(tmp_path)]) == 2  # a typo, not 31,700 years
+    assert "got 1e+12" in capsys.readouterr().err
     assert main(["soak", "--vehicle", str(tmp_path / "missing.toml"), "--out", str(tmp_path)]) == 2
     assert "missing.toml" in capsys.readouterr().err
-    assert main(["soak", "--duration", "30", "--out", str(tmp_path)]) == 1  # no whole mission fits
+    assert main(["soak", "--duration", "30", "--out", str(tmp_path)]) == 2  # no whole mission fits: usage
     assert "holds no whole random mission" in capsys.readouterr().err
     assert main(["soak", "--retime", str(tmp_path)]) == 2  # no summary.json there
     assert "is not a finished soak" in capsys.readouterr().err
