@@ -363,7 +363,8 @@ def make_plots(path, out_dir, vehicle=None) -> dict:
         ax2.invert_yaxis()
         return None
 
-    titles = {"attitude": "Attitude", "depth": "Depth", "velocity": "Velocity", "jets": "Jets",
+    titles = {"attitude": "Attitude", "depth": "Depth", "velocity": "Velocity",
+              "jets": "Jets" if not vehicle.fixed else "Thrusters" if not vehicle.n_jets else "Jets and thrusters",
               "joints": "Joint angles", "allocation": "Allocation residual", "timing": "Loop timing",
               "link": "Link quality",
               "replay": f"Replay: the recorded thruster outputs through the {vehicle.name} model"}

@@ -64,6 +64,9 @@ def run(args) -> int:
     try:
         vehicle = load_vehicle(args.vehicle)
         if getattr(args, "jet_neutral", None) is not None:
+            if not vehicle.n_jets:  # a two-way thruster's neutral is its curve's dead band
+                raise VehicleFileError(f"--jet-neutral: {vehicle.name} has no water-jets (its fixed thrusters "
+                                       "stop in their thrust curve's dead band)")
             vehicle = vehicle.with_values({"pwm.jet_neutral": args.jet_neutral})
         key = load_key(args.key) if getattr(args, "key", None) else None
     except (VehicleFileError, SigningError) as exc:

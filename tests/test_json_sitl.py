@@ -341,3 +341,14 @@ def test_a_diverged_vehicle_never_puts_nan_into_the_json():
     frame = json.loads(reply, parse_constant=refuse)
     assert b.diverged == 1 and frame["position"][2] == pytest.approx(0.5)  # started over
     assert sitl_parse(reply)["timestamp"] == pytest.approx(2 / 400)
+
+
+def test_jet_neutral_on_a_vehicle_without_jets_is_one_line(capsys):
+    """--jet-neutral sets where a one-way jet stops: on the BlueROV2 (fixed two-way thrusters only)
+    it means nothing, and is refused in one line rather than silently accepted."""
+    from ground.cli import main
+
+    assert main(["hil", "--json-sitl", "--vehicle", "bluerov2_heavy", "--jet-neutral", "1500", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("jetloop hil: --jet-neutral: bluerov2_heavy has no water-jets (its fixed thrusters stop in their "
+                   "thrust curve's dead band)"), err
