@@ -141,6 +141,8 @@ class Recording:
     mocap: MocapStream | None = None
     vehicle_id: tuple = (1, 1)  # (system, component) whose messages were used
     parameters: dict = field(default_factory=dict)  # the autopilot's parameters in the log, last value each
+    parameters_changed: tuple = ()  # names whose value changed during the log (the last one is kept)
+    parameters_dropped: int = 0  # rows left out: names beyond MAX_PARAMETERS, rows beyond MAX_PARAMETER_ROWS
 
     @property
     def streams(self) -> dict:
@@ -562,14 +564,19 @@ def decode_message(buf, off, plen, mid, name: str):
 
 
 WANTED = ("HEARTBEAT", "HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "RAW_IMU", "SCALED_PRESSURE2",
-          "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ESC_TELEMETRY_1_TO_4", "ATT_POS_MOCAP", "PARAM_VALUE")
+          "SERVO_OUTPUT_RAW", "ATTITUDE", "ESC_STATUS", "ESC_TELEMETRY_1_TO_4", "ATT_POS_MOCAP")
 MAX_PARAMETERS = 20000  # ArduSub has about 1000; a hostile log cannot grow the dict past this
+MAX_PARAMETER_ROWS = 100_000  # PARAM_VALUE packets decoded (the last ones): memory by a bound, not the file
 
 
-def _parameters(pairs) -> dict:
-    """{name: value} of (name, value) pairs in log order, the last value of each name kept: names
-    of 1-16 printable ASCII characters, finite values, at most MAX_PARAMETERS names."""
+def _parameters(pairs) -> tuple[dict, tuple, int]:
+    """({name: value}, changed, dropped) of (name, value) pairs in log order, the last value of
+    each name kept: names of 1-16 printable ASCII characters, finite values, at most
+    MAX_PARAMETERS names; `changed` the names whose value changed during the log (at most 1000),
+    `dropped` the rows of names that did not fit."""
     out: dict = {}
+    changed: dict = {}
+    dropped = 0
     for name, value in pairs:
         if isinstance(name, bytes):
             name = name.split(b"\0", 1)[0].decode("ascii", "replace")
@@ -577,10 +584,17 @@ def _parameters(pairs) -> dict:
             value = float(value)
         except (TypeError, ValueError):
             continue
-        if (0 < len(name) <= 16 and name.isascii() and name.isprintable() and math.isfinite(value)
-                and (name in out or len(out) < MAX_PARAMETERS)):
+        if not (0 < len(name) <= 16 and name.isascii() and name.isprintable() and math.isfinite(value)):
+            continue
+        if name in out:
+            if out[name] != value and len(changed) < 1000:
+                changed[name] = True
             out[name] = value
-    return out
+        elif len(out) < MAX_PARAMETERS:
+            out[name] = value
+        else:
+            dropped += 1
+    return out, tuple(sorted(changed)), dropped
 
 
 def _log_clock_reference(decoded, ts, use, mid, name_to_id):
@@ -690,12 +704,14 @@ def _read_tlog(path: Path, data: bytes) -> Recording:
     imu, pressure, servo, attitude, esc, mocap = _trim_tails((imu, pressure, servo, attitude, esc, mocap), tally)
     skipped_info = Skipped(int(bad_crc), int(skipped), int(truncated), int(unknown), tally.nonmono,
                            tuple(tally.gaps), 0, tally.out_of_range, tally.bad_time)
-    params = {}
-    if "PARAM_VALUE" in decoded:
-        a = decoded["PARAM_VALUE"]
-        params = _parameters(zip(a["param_id"], a["param_value"]))
+    params, changed, dropped = {}, (), 0
+    if "PARAM_VALUE" in counts:
+        sel = np.flatnonzero(use & (mid == name_to_id["PARAM_VALUE"]))[-MAX_PARAMETER_ROWS:]
+        a = _decode_bulk(buf, off[sel], plen[sel], d.mavlink_map[name_to_id["PARAM_VALUE"]])
+        params, changed, dropped = _parameters(zip(a["param_id"], a["param_value"]))
+        dropped += max(counts["PARAM_VALUE"] - MAX_PARAMETER_ROWS, 0)
     return Recording(str(path), "tlog", counts, skipped_info, imu, pressure, servo, attitude, esc,
-                     mocap, vehicle, params)
+                     mocap, vehicle, params, changed, dropped)
 
 
 def _vehicle_source(buf, off, plen, mid, src, d) -> tuple:
@@ -1400,9 +1416,11 @@ def _read_dataflash_file(path: Path, read_path: str, data: bytes, bad_fmts: int)
     imu, pressure, servo, attitude, esc = _trim_tails((imu, pressure, servo, attitude, esc), tally, ref)
     skipped_info = Skipped(0, skipped_bytes, 0, 0, tally.nonmono, tuple(tally.gaps), bad[0],
                            tally.out_of_range, tally.bad_time)
-    params = _parameters((r.get("Name"), r.get("Value")) for r in rows["PARM"] if isinstance(r.get("Name"), str))
+    params, changed, dropped = _parameters((r.get("Name"), r.get("Value")) for r in rows["PARM"][-MAX_PARAMETER_ROWS:]
+                                           if isinstance(r.get("Name"), str))
     return Recording(str(path), "dataflash", counts, skipped_info, imu, pressure, servo, attitude, esc,
-                     parameters=params)
+                     parameters=params, parameters_changed=changed,
+                     parameters_dropped=dropped + max(len(rows["PARM"]) - MAX_PARAMETER_ROWS, 0))
 
 
 def _df_columns(rows: list, need: tuple, bad: list, *optional: str) -> np.ndarray:

@@ -171,13 +171,19 @@ def test_ardusub_directions_by_hand():
     assert ardusub_directions({"MOT_1_DIRECTION": -1.0}, load_vehicle(None)) is None
 
 
-def test_a_fault_is_relative_to_the_logs_motor_directions():
-    """With unit 1 reversed by the autopilot, the fault candidate's fraction 1 leaves it reversed
-    and -1 would mean it is reversed once more (the motor wired the other way as well)."""
-    base = CorrectedModel(HEAVY, thrust_fraction=(-1.0, 1, 1, 1, 1, 1, 1, 1))
-    tf = {c.effect: c for c in candidates_for(HEAVY)}["thruster_fault"].subset((0,))
-    assert tf.apply([1.0], base).thrust_fraction == base.thrust_fraction
-    assert tf.apply([0.5], base).thrust_fraction[0] == -0.5
+@pytest.mark.usefixtures("ardusub_data")
+def test_the_logs_motor_directions_are_in_the_commands_the_smoother_sees():
+    """small.tlog's MOT_1/2/5/8_DIRECTION = -1 sign those thrusters' commands in held_commands,
+    the one place every part of the diagnosis (smoother, candidates, null draws) takes them from."""
+    from ground.diagnose import replay
+    from ground.recording import read_recording
+
+    rec = read_recording(ARDUSUB / "small.tlog")
+    t = rec.servo.time_s[(rec.servo.time_s > 903.0) & (rec.servo.time_s < 905.0)]
+    raw = replay.pwm_to_commands(HEAVY, rec.servo.pwm_us)[np.searchsorted(rec.servo.time_s, t)]
+    got = replay.held_commands(rec, HEAVY, t)
+    assert np.abs(raw[:, :8]).max() > 5.0  # the burst: thrusters running
+    assert np.array_equal(got[:, :8], raw[:, :8] * np.array([-1, -1, 1, 1, -1, 1, 1, -1]))
 
 
 def test_a_log_s_parameters_are_bounded_and_clean():
@@ -185,11 +191,12 @@ def test_a_log_s_parameters_are_bounded_and_clean():
     value of a name wins, and no log can hold more than MAX_PARAMETERS names."""
     from ground.recording import MAX_PARAMETERS, _parameters
 
-    got = _parameters([(b"MOT_1_DIRECTION\0", 1.0), (b"MOT_1_DIRECTION", -1.0), (b"\x1b[2J", 1.0), (b"", 1.0),
-                       (b"A", float("nan")), (b"B", float("inf")), ("C" * 17, 1.0), ("OK", "x")])
-    assert got == {"MOT_1_DIRECTION": -1.0}
-    many = _parameters((f"P{i}", float(i)) for i in range(MAX_PARAMETERS + 50))
-    assert len(many) == MAX_PARAMETERS
+    got, changed, dropped = _parameters([(b"MOT_1_DIRECTION\0", 1.0), (b"MOT_1_DIRECTION", -1.0), (b"\x1b[2J", 1.0),
+                                         (b"", 1.0), (b"A", float("nan")), (b"B", float("inf")), ("C" * 17, 1.0),
+                                         ("OK", "x"), ("Q", 2.0), ("Q", 2.0)])
+    assert got == {"MOT_1_DIRECTION": -1.0, "Q": 2.0} and changed == ("MOT_1_DIRECTION",) and dropped == 0
+    many, changed, dropped = _parameters((f"P{i}", float(i)) for i in range(MAX_PARAMETERS + 50))
+    assert len(many) == MAX_PARAMETERS and dropped == 50
 
 
 @pytest.mark.usefixtures("ardusub_data")

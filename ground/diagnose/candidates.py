@@ -23,7 +23,6 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from onboard import model
-from onboard.fixed import ardusub_directions
 from onboard.vehicle import Vehicle, VehicleFileError
 
 from . import replay
@@ -80,9 +79,9 @@ class Candidate:
         frac = None if base.thrust_fraction is None else list(base.thrust_fraction)
         gain = base.curve_gain
         for (key, idx), val in zip(self.keys, theta):
-            if key.startswith("thruster_fault."):  # relative to the base (the log's motor directions)
+            if key.startswith("thruster_fault."):  # of the commands as the log's motor directions signed them
                 frac = frac or [1.0] * v.n_units
-                frac[idx] = (1.0 if base.thrust_fraction is None else base.thrust_fraction[idx]) * float(val)
+                frac[idx] = float(val)
             elif key == CURVE_GAIN:
                 g = list(gain or (1.0, 1.0))
                 g[idx] = float(val)
@@ -254,10 +253,8 @@ class Evaluator:
         self.k = nominal.n_units
         self._traj: dict = {}
         self._act: dict = {}
-        s = nominal.sensors  # the vehicle file's own biases and delay are part of the nominal model,
-        # and so are the motor directions the autopilot's parameters in the log give (ArduSub)
-        self.base = CorrectedModel(nominal, replay.SensorCorrection(tuple(s.gyro_bias), tuple(s.accel_bias), s.delay),
-                                   ardusub_directions(rec.parameters, nominal))
+        s = nominal.sensors  # the vehicle file's own biases and delay are part of the nominal model
+        self.base = CorrectedModel(nominal, replay.SensorCorrection(tuple(s.gyro_bias), tuple(s.accel_bias), s.delay))
         self.traj0 = self.trajectory(self.base.correction)
 
     def trajectory(self, corr: replay.SensorCorrection) -> replay.Trajectory:

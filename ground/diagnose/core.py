@@ -16,6 +16,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from onboard import model
+from onboard.fixed import ardusub_directions
 from onboard.vehicle import Vehicle
 
 from . import decide, locate, null, replay, sparse
@@ -118,7 +119,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     except replay.TooShort as exc:
         return _insufficient(rec, vehicle, str(exc).split(": ", 1)[-1], t_start)
     traj = ev.traj0
-    signs = ev.base.thrust_fraction  # the log's motor directions (onboard.fixed.ardusub_directions)
+    signs = ardusub_directions(rec.parameters, vehicle)  # in the commands (replay.held_commands)
     reversed_units = [i + 1 for i, f in enumerate(signs or ()) if f < 0]
     if reversed_units:
         _say(progress, f"the log's MOT_n_DIRECTION reverse thruster(s) {reversed_units}: the model pushes them the other way")
@@ -305,6 +306,14 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     rejected = list(dict.fromkeys(public.get(e, e) for e in rejected))
     est = traj.estimate
     warnings = []
+    if vehicle.fixed:  # what the motor directions read from the log cannot say
+        moved = [n for n in rec.parameters_changed if n.startswith(("MOT_", "SERVO", "FRAME_"))]
+        if moved:
+            warnings.append(f"the log changes {', '.join(moved)} during the recording; the motor directions use "
+                            "the last value throughout")
+        if rec.parameters_dropped:
+            warnings.append(f"{rec.parameters_dropped} parameter rows of the log were left out (more than the reader "
+                            "keeps): the motor directions may be incomplete")
     if cal.draws < MIN_DRAWS:
         warnings.append(f"only {cal.draws} null draw(s) could be made on this recording's grid: the thresholds "
                         "are not calibrated, so no finding is named")
@@ -446,7 +455,7 @@ def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
     Cramer-Rao bound that decided it."""
     sd = decide.calibrated_sd(s, cal)
     rel = float(np.min(sd / np.maximum(s.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
-    crb = (f"Cramer-Rao sd {rel:.1f}x the smallest error worth finding" if math.isfinite(rel)
+    crb = (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding" if math.isfinite(rel)
            else "the recording carries no information on it")
     e = vehicle.environment
     R = vehicle.body.radius

@@ -31,6 +31,7 @@ from numba import njit
 from scipy.signal import savgol_filter
 
 from onboard import model
+from onboard.fixed import ardusub_directions
 from onboard.jit import MODEL_SOURCE, key_caches_on
 from onboard.pwm import pwm_to_command
 from onboard.vehicle import Vehicle
@@ -142,10 +143,15 @@ def pwm_to_commands(vehicle: Vehicle, pwm_us: np.ndarray) -> np.ndarray:
 
 
 def held_commands(rec, vehicle: Vehicle, t_grid) -> np.ndarray:
-    """Command vector at each grid time: the last SERVO_OUTPUT_RAW at or before it (spec 6)."""
+    """Command vector at each grid time: the last SERVO_OUTPUT_RAW at or before it (spec 6), as
+    the thrusters act on it: with the motor directions the autopilot's parameters in the log
+    give (ArduSub's MOT_n_DIRECTION, `onboard.fixed.ardusub_directions`), applied here once, so
+    the smoother, the candidates, the null draws and the shooting all see them."""
     idx = np.searchsorted(rec.servo.time_s, t_grid + 1e-9, side="right") - 1
     idx = np.clip(idx, 0, len(rec.servo.time_s) - 1)
-    return pwm_to_commands(vehicle, rec.servo.pwm_us)[idx]
+    cmd = pwm_to_commands(vehicle, rec.servo.pwm_us)[idx]
+    signs = ardusub_directions(rec.parameters, vehicle)
+    return cmd if signs is None else model.faulty_command(vehicle, cmd, signs)
 
 
 def _euler_to_quat_rows(e):
