@@ -118,18 +118,14 @@ def replay_fixed(rec, vehicle, t0: float, t1: float, dt_s: float = REPLAY_DT_S):
     """The recorded SERVO_OUTPUT_RAW rows (each held until the next) through the vehicle model from
     t0 to t1: (t, roll/pitch/yaw rad (n, 3), depth m). The start is the recorded attitude and
     pressure depth at t0, at rest (a recording holds no body velocity). Pure: onboard.model's RK4."""
+    from ground.diagnose.replay import flown_commands
     from onboard import model
-    from onboard.fixed import ardusub_directions
-    from onboard.pwm import pwm_to_command
     from onboard.sensors import depth_from_pressure
 
     a, pr, sv = rec.attitude, rec.pressure, rec.servo
     e0 = [float(np.interp(t0, a.time_s, np.unwrap(a.euler_rad[:, i]))) for i in range(3)]
     d0 = float(np.interp(t0, pr.time_s, depth_from_pressure(pr.press_abs_pa, vehicle)))
-    cmds = pwm_to_command(vehicle, np.asarray(sv.pwm_us, float).T).T
-    signs = ardusub_directions(rec.parameters, vehicle)  # MOT_n_DIRECTION in the log
-    if signs is not None:
-        cmds = model.faulty_command(vehicle, cmds, signs)
+    cmds = flown_commands(rec, vehicle)  # with the log's motor directions
     p = model.pack_params(vehicle)
     x = model.initial_state(vehicle, d0)
     x[3:7] = model.euler_to_quat(*e0)

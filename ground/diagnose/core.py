@@ -93,7 +93,7 @@ def fit_windows(rec, max_fit_s: float, vehicle: Vehicle | None = None) -> list[t
         a, b = max(bounds, key=lambda s: s[1] - s[0])
         return [(a, b)]
     if vehicle is not None and rec.servo is not None and len(rec.servo.time_s):
-        thrust = np.abs(replay.pwm_to_commands(vehicle, rec.servo.pwm_us)[:, :vehicle.n_units]).max(axis=1)
+        thrust = np.abs(replay.flown_commands(rec, vehicle)[:, :vehicle.n_units]).max(axis=1)
         t = rec.servo.time_s
         # a window is actuated when a command in force during it (the last one before it, held,
         # or one inside it) asks for thrust
@@ -170,13 +170,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         _say(progress, f"null draw {b + 1}/{draws} ({time.perf_counter() - t0:.1f} s)")
     cal = decide.calibrate(null_scores, families)
     by_effect = {s.effect: s for s in scores}
-    untestable = []
-    for c in cands:
-        s = by_effect[c.effect]
-        if not decide.testable(s, cal):
-            untestable.append({"effect": c.public, "kind": c.kind,
-                               "reason": untestable_reason(c.effect, s, cal, traj, vehicle, rec)})
     skip = {c.effect for c in cands if not decide.testable(by_effect[c.effect], cal)}
+    untestable = [{"effect": c.public, "kind": c.kind,
+                   "reason": untestable_reason(c.effect, by_effect[c.effect], cal, traj, vehicle, rec)}
+                  for c in cands if c.effect in skip]
     for s in scores:
         _say(progress, f"{s.effect:18s} S = {s.statistic:10.1f}  threshold {cal.threshold[s.effect]:8.1f}"
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")

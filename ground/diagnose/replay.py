@@ -149,7 +149,15 @@ def held_commands(rec, vehicle: Vehicle, t_grid) -> np.ndarray:
     the smoother, the candidates, the null draws and the shooting all see them."""
     idx = np.searchsorted(rec.servo.time_s, t_grid + 1e-9, side="right") - 1
     idx = np.clip(idx, 0, len(rec.servo.time_s) - 1)
-    cmd = pwm_to_commands(vehicle, rec.servo.pwm_us)[idx]
+    return flown_commands(rec, vehicle)[idx]
+
+
+def flown_commands(rec, vehicle: Vehicle) -> np.ndarray:
+    """The command of every SERVO_OUTPUT_RAW row as the thrusters act on it: through the [pwm]
+    maps, signed by the motor directions in the log's autopilot parameters (ArduSub's
+    MOT_n_DIRECTION, `onboard.fixed.ardusub_directions`). The diagnosis and the plot's replay
+    read the recorded commands only through here."""
+    cmd = pwm_to_commands(vehicle, rec.servo.pwm_us)
     signs = ardusub_directions(rec.parameters, vehicle)
     return cmd if signs is None else model.faulty_command(vehicle, cmd, signs)
 
