@@ -514,6 +514,15 @@ def actuator_project(xa, u, p, k):
                 xa[j] = min(max(xa[j], -lim), lim)
 
 
+def actuator_param_indices(k: int) -> np.ndarray:
+    """Indices of everything `actuator` and `actuator_project` read from the packed parameters
+    (k units): two parameter vectors equal there give the same actuator run under one command."""
+    idx = [ON_MOTOR, P_TAU_M, P_NMAX, ON_SERVO, P_ALIM, P_RLIM, P_TAU_S, ON_TRANSIENT, P_GAIN_T]
+    idx += range(P_TF, P_TF + 8 * len(TRANSIENT_ROWS))
+    idx += range(P_UNITS + 6 * k, P_UNITS + 6 * k + UNIT_TAIL * k)
+    return np.array(idx, np.int64)
+
+
 @njit(cache=True)
 def jets_and_transients(x, u, p, nu_r, k, xdot, tau, thrust_out):
     """tau_jets + tau_transient of k units; writes actuator and filter derivatives into xdot.

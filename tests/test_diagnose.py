@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.signal import savgol_filter
 
 from conftest import ARDUSUB, shared_file
 from ground.cli import main
@@ -61,6 +62,45 @@ def test_actuator_run_matches_the_plant():
     # RK4 at 5 ms against the plant's 1 ms: equal to well under a percent
     assert np.abs(act[:, :12] - states[:, 13:25]).max() < 1e-3
     assert np.abs(act[:, 12:] - states[:, 25:]).max() < 1e-3 * max(1.0, np.abs(states[:, 25:]).max())
+
+
+def test_actuator_runs_are_shared_by_inputs_and_bounded():
+    """One run per (commands, lead-in, dt, actuator parameters): equal to a fresh run, shared when
+    only the body's parameters differ, new when an actuator's or a command differs, and the
+    memory stays under its bound."""
+    rng = np.random.default_rng(3)
+    cmd = np.zeros((400, 12))
+    cmd[:, :4] = rng.uniform(20, 80, (400, 4))
+    cmd[:, 4:] = np.repeat(rng.uniform(-1, 1, (4, 8)), 100, axis=0)
+    p = model.pack_params(V)
+    runs = replay.ActuatorRuns()
+    a = runs.get(cmd, 0.01, p, 4)
+    np.testing.assert_array_equal(a, replay.actuator_run_commands(cmd, 0.01, p, 4))
+    heavier = model.pack_params(V.with_values({"body.volume": V.body.volume * 1.2}))
+    assert runs.get(cmd.copy(), 0.01, heavier, 4) is a  # the body does not move the actuators
+    slow = model.pack_params(V.with_values({"thruster.motor_time_constant": 2 * V.thruster.motor_time_constant}))
+    assert runs.get(cmd, 0.01, slow, 4) is not a
+    other = cmd.copy()
+    other[200, 0] += 1.0
+    assert runs.get(other, 0.01, p, 4) is not a
+    lead = replay.LeadIn(cmd[:50])
+    np.testing.assert_array_equal(runs.get(cmd, 0.01, p, 4, lead), replay.actuator_run_lead(cmd, 0.01, p, 4, lead))
+    small = replay.ActuatorRuns(max_bytes=2 * a.nbytes)
+    for j in range(5):
+        c = cmd.copy()
+        c[:, 0] += j
+        small.get(c, 0.01, p, 4)
+        assert small._bytes <= 2 * a.nbytes
+
+
+@pytest.mark.parametrize("n, window, order, deriv, delta, axis", [
+    (100, 21, 2, 0, 1.0, 0), (1000, 31, 2, 1, 0.01, 0), (500, 9, 3, 2, 0.05, 0), (50, 21, 2, 1, 0.1, 1),
+    (21, 21, 2, 2, 0.3, 0)])
+def test_savgol_equals_scipy_interp(n, window, order, deriv, delta, axis):
+    rng = np.random.default_rng(n)
+    y = rng.normal(size=(n, 3) if axis == 0 else (3, n))
+    ref = savgol_filter(y, window, order, deriv=deriv, delta=delta, axis=axis, mode="interp")
+    np.testing.assert_allclose(replay.savgol(y, window, order, deriv, delta, axis), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
 
 
 def test_reconstruction_recovers_the_state(quiet_session):

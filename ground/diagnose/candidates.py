@@ -235,10 +235,6 @@ def combine(a: Candidate, b: Candidate) -> Candidate:
 # Evaluation
 
 
-ACT_KEYS = (model.ON_MOTOR, model.P_TAU_M, model.ON_SERVO, model.P_TAU_S, model.P_RLIM,
-            model.ON_TRANSIENT, model.P_ALIM, model.P_NMAX)
-
-
 class Evaluator:
     """Residual channels (N, 12) of a corrected model along one recording, with caches.
 
@@ -246,13 +242,14 @@ class Evaluator:
     residual. Built ready to use from a recording and the nominal vehicle.
     """
 
-    def __init__(self, rec, nominal: Vehicle, lead: replay.LeadIn | None = None):
+    def __init__(self, rec, nominal: Vehicle, lead: replay.LeadIn | None = None,
+                 runs: replay.ActuatorRuns | None = None):
         self.rec = rec
         self.nominal = nominal
         self.lead = lead
         self.k = nominal.n_units
         self._traj: dict = {}
-        self._act: dict = {}
+        self.runs = runs if runs is not None else replay.ActuatorRuns()  # shared by a diagnosis' evaluators
         s = nominal.sensors  # the vehicle file's own biases and delay are part of the nominal model
         self.base = CorrectedModel(nominal, replay.SensorCorrection(tuple(s.gyro_bias), tuple(s.accel_bias), s.delay))
         self.traj0 = self.trajectory(self.base.correction)
@@ -262,7 +259,7 @@ class Evaluator:
         if key not in self._traj:
             if len(self._traj) > 64:
                 self._traj.clear()
-            self._traj[key] = replay.reconstruct(self.rec, self.nominal, corr, self.lead)
+            self._traj[key] = replay.reconstruct(self.rec, self.nominal, corr, self.lead, self.runs)
         return self._traj[key]
 
     def command(self, traj, cm: CorrectedModel, command=None) -> np.ndarray:
@@ -272,15 +269,10 @@ class Evaluator:
         return model.faulty_command(cm.vehicle, command, cm.thrust_fraction, cm.curve_gain)
 
     def actuators(self, traj, p, cm: CorrectedModel) -> np.ndarray:
-        key = (id(traj), tuple(p[list(ACT_KEYS)]), cm.thrust_fraction, cm.curve_gain)
-        if key not in self._act:
-            if len(self._act) > 64:
-                self._act.clear()
-            lead = self.lead
-            if lead is not None:
-                lead = replay.LeadIn(self.command(traj, cm, lead.command), lead.x0)
-            self._act[key] = replay.actuator_run_lead(self.command(traj, cm), traj.dt_s, p, self.k, lead)
-        return self._act[key]
+        lead = self.lead
+        if lead is not None:
+            lead = replay.LeadIn(self.command(traj, cm, lead.command), lead.x0)
+        return self.runs.get(self.command(traj, cm), traj.dt_s, p, self.k, lead)
 
     def disturbance(self) -> tuple[np.ndarray, np.ndarray]:
         """(N, 6) smoothed generalised-force disturbance of the nominal model and its sd (N, N m)."""

@@ -13,7 +13,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from onboard import model
 from onboard.fixed import ardusub_directions
@@ -114,8 +113,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     t_start = time.perf_counter()
     rec = _longest_segment(rec, progress)
     _say(progress, f"estimating {rec.duration_s:.1f} s with the nominal model '{vehicle.name}' (EKF + RTS smoother)")
+    runs = replay.ActuatorRuns()  # one actuator run per commands and actuator parameters, shared
     try:
-        ev = Evaluator(rec, vehicle)
+        ev = Evaluator(rec, vehicle, runs=runs)
     except replay.TooShort as exc:
         return _insufficient(rec, vehicle, str(exc).split(": ", 1)[-1], t_start)
     traj = ev.traj0
@@ -143,7 +143,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     if not recs_w:
         return _insufficient(rec, vehicle, "no stretch where IMU, pressure and commands overlap long enough", t_start)
     leads = [_lead_in(rec, traj, r, vehicle) for r in recs_w]
-    evs = [Evaluator(r, vehicle, lead) for r, lead in zip(recs_w, leads)]
+    evs = [Evaluator(r, vehicle, lead, runs) for r, lead in zip(recs_w, leads)]
     ev_fit = SegmentedEvaluator(evs)
     res0_fit = ev_fit.residual(ev_fit.base)
     split_fit = locate.make_split([e.traj0 for e in evs], [locate.noise_realisation(e, e.residual(e.base)) for e in evs])
@@ -160,7 +160,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         t0 = time.perf_counter()
         recs_b = [null.simulate_window(r, e.traj0, e.actuators(e.traj0, p0, e.base), vehicle, sig, rng,
                                        start=_state_at(traj, e.traj0.time_s[0])) for r, e in zip(recs_w, evs)]
-        evs_b = [Evaluator(r, vehicle, lead) for r, lead in zip(recs_b, leads)]
+        evs_b = [Evaluator(r, vehicle, lead, runs) for r, lead in zip(recs_b, leads)]
         ev_b = SegmentedEvaluator(evs_b)
         res_b = ev_b.residual(ev_b.base)
         if len(res_b) != len(res0_fit):  # a draw on another grid cannot share the weights
@@ -606,11 +606,11 @@ def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: Co
         # at the native sample times, gridded and smoothed the same way (replay.reconstruct).
         # "raw" is the plain NRMSE against the raw measurement.
         win = min(replay._odd(round(replay.SMOOTH_S / traj.dt_s)), n - (1 - n % 2))
-        meas_s = savgol_filter(meas, win, 2, axis=1, mode="interp") if len(starts) else meas
+        meas_s = replay.savgol(meas, win, 2, axis=1) if len(starts) else meas
         idx_w = starts[:, None] + np.arange(n)[None, :]
         probe = traj.noise_probe[idx_w] if len(starts) else np.zeros((0, n, 10))
         probe = probe - probe[:, :1] * (np.arange(10) == 9)  # yaw is compared as a change
-        probe_s = savgol_filter(probe, win, 2, axis=1, mode="interp") if len(starts) else probe
+        probe_s = replay.savgol(probe, win, 2, axis=1) if len(starts) else probe
         out["meas_smooth"] = meas_s
         for tag, ref in (("", meas_s), ("_raw", meas)):
             nr = {}

@@ -25,7 +25,8 @@ Measurements (spec 5), each a scalar sequential update (diagonal R):
 Jacobians by forward differences of the compiled model (`onboard.model.derivative`: one
 description of the physics, the plant's own); covariance propagated with F = I + A h + (A h)^2/2.
 
-The smoother stores the filter only at chunk starts and re-runs each chunk on the way back, so
+The smoother stores the filter only at chunk starts and re-runs each chunk on the way back (the
+last one is stored on the way forward: a window shorter than a chunk is filtered once), so
 memory stays bounded by the chunk (2000 steps), not by the recording.
 Pure: arrays in, a frozen `Estimate` out.
 """
@@ -425,15 +426,24 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     checkpoints = []
     x, P = np.asarray(x0, float).copy(), P0
     outliers = resets = 0
-    for s0 in starts:
+
+    def stores(m):
+        return (np.zeros((m, NX)), np.zeros((m, NX, NX)), np.zeros((m, NX)), np.zeros((m, NX, NX)),
+                np.zeros((m, NX, NX)))
+
+    last = None  # the last chunk is stored on the way forward (a short window: one pass only)
+    for ci, s0 in enumerate(starts):
         s1 = min(s0 + CHUNK, n)
         checkpoints.append((x.copy(), P.copy()))
         sl = slice(s0, s1)
+        keep = ci == len(starts) - 1
+        st = stores(s1 - s0) if keep else (dummy2, dummy3, dummy2, dummy3, dummy3)
         x, P, o, r = _filter(x, P, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
-                          meas.reset[sl], p_reset, False, dummy2, dummy3, dummy2, dummy3, dummy3,
-                          nll[sl], nsc[sl], inno_ss, inno_n)
+                          meas.reset[sl], p_reset, keep, *st, nll[sl], nsc[sl], inno_ss, inno_n)
         outliers += o
         resets += r
+        if keep:
+            last = st
     xs = np.zeros((n, NX))
     stds = np.zeros((n, NX))
     x_next, P_next = x, P  # the prediction past the end: nothing after it to smooth with
@@ -441,13 +451,15 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
         s0 = starts[ci]
         s1 = min(s0 + CHUNK, n)
         m = s1 - s0
-        xf, Pf, xp, Pp, Fs = (np.zeros((m, NX)), np.zeros((m, NX, NX)), np.zeros((m, NX)),
-                              np.zeros((m, NX, NX)), np.zeros((m, NX, NX)))
         sl = slice(s0, s1)
-        xc, Pc = checkpoints[ci]
-        _filter(xc, Pc, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
-                meas.reset[sl], p_reset, True, xf, Pf, xp, Pp, Fs, np.zeros(m), np.zeros(m, np.int64),
-                np.zeros(len(MEAS)), np.zeros(len(MEAS), np.int64))
+        if ci == len(starts) - 1:
+            xf, Pf, xp, Pp, Fs = last
+        else:  # re-run from the chunk's checkpoint, storing this time
+            xf, Pf, xp, Pp, Fs = stores(m)
+            xc, Pc = checkpoints[ci]
+            _filter(xc, Pc, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
+                    meas.reset[sl], p_reset, True, xf, Pf, xp, Pp, Fs, np.zeros(m), np.zeros(m, np.int64),
+                    np.zeros(len(MEAS)), np.zeros(len(MEAS), np.int64))
         P_next = _rts(xf, Pf, xp, Pp, Fs, x_next, P_next, xs[sl], stds[sl])
         x_next = xs[s0].copy()
     rms = {MEAS[i]: float(math.sqrt(inno_ss[i] / inno_n[i])) for i in range(len(MEAS)) if inno_n[i]}

@@ -78,7 +78,7 @@ def with_extra_noise(rec, sigmas: dict, seed: int = 12345):
 
 def noise_realisation(ev: Evaluator, res0: np.ndarray) -> np.ndarray:
     """One realisation (N, 12) of sensor noise as it reaches the residual channels."""
-    noisy = Evaluator(with_extra_noise(ev.rec, sensor_noise(ev.rec)), ev.nominal, ev.lead)
+    noisy = Evaluator(with_extra_noise(ev.rec, sensor_noise(ev.rec)), ev.nominal, ev.lead, ev.runs)
     return noisy.residual(noisy.base) - res0
 
 

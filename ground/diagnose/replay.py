@@ -23,12 +23,15 @@ Pure math on arrays: a `Recording` and a parameter vector in, frozen results out
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
-from scipy.signal import savgol_filter
+from scipy.ndimage import convolve1d
+from scipy.signal import savgol_coeffs, savgol_filter
 
 from onboard import model
 from onboard.fixed import ardusub_directions
@@ -109,6 +112,43 @@ def _interp(t_grid, t, y):
     if y.ndim == 1:
         return np.interp(t_grid, t, y)
     return np.column_stack([np.interp(t_grid, t, y[:, j]) for j in range(y.shape[1])])
+
+
+@functools.lru_cache(maxsize=64)
+def _savgol_ops(window: int, order: int, deriv: int, delta: float):
+    """The Savitzky-Golay filter as linear operators: the interior kernel (scipy's
+    `savgol_coeffs`) and the two (window // 2, window) edge matrices of mode "interp" (the
+    polynomial fitted to the first or last window of samples, evaluated or differentiated at the
+    edge samples), made once per shape; scipy refits the edges by `polyfit` on every call."""
+    half = window // 2
+    pos = np.arange(window, dtype=float)
+    V = np.vander(pos, order + 1)  # highest power first, like np.polyfit
+    fit = np.linalg.pinv(V)  # (order+1, window): polynomial coefficients of a window
+    powers = np.arange(order, -1, -1)
+    edges = []
+    for at in (pos[:half], pos[window - half:]):
+        # d^deriv/dx^deriv of sum c_j x^p_j at `at`
+        D = np.zeros((len(at), order + 1))
+        for j, pw in enumerate(powers):
+            if pw >= deriv:
+                D[:, j] = math.perm(int(pw), deriv) * at ** (pw - deriv)
+        edges.append(D @ fit / delta ** deriv)
+    return savgol_coeffs(window, order, deriv=deriv, delta=delta), edges[0], edges[1]
+
+
+def savgol(y, window: int, order: int, deriv: int = 0, delta: float = 1.0, axis: int = 0) -> np.ndarray:
+    """`scipy.signal.savgol_filter(y, window, order, deriv, delta, axis, mode="interp")` with its
+    operators made once per shape (`_savgol_ops`): the same numbers, without refitting the
+    edges by least squares on every call (a third of the diagnosis' time went there)."""
+    y = np.moveaxis(np.asarray(y, float), axis, 0)
+    if y.shape[0] < window:
+        return np.moveaxis(savgol_filter(y, window, order, deriv=deriv, delta=delta, axis=0, mode="interp"), 0, axis)
+    kernel, first, last = _savgol_ops(int(window), int(order), int(deriv), float(delta))
+    out = convolve1d(y, kernel, axis=0, mode="constant")
+    half = window // 2
+    out[:half] = np.tensordot(first, y[:window], axes=(1, 0))
+    out[len(y) - half:] = np.tensordot(last, y[len(y) - window:], axes=(1, 0))
+    return np.moveaxis(out, 0, axis)
 
 
 def _odd(n: int) -> int:
@@ -214,8 +254,9 @@ class LeadIn:
 
 
 def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = None,
-                lead: LeadIn | None = None) -> Trajectory:
-    """The recording on the IMU grid and the rigid-body state estimated from it (module doc 1)."""
+                lead: LeadIn | None = None, runs: ActuatorRuns | None = None) -> Trajectory:
+    """The recording on the IMU grid and the rigid-body state estimated from it (module doc 1);
+    the nominal actuator run from `runs` when given (shared with the candidates)."""
     corr = correction or SensorCorrection()
     t, dt = grid_for(rec)
     d = corr.delay_s  # a sample stamped t_m describes the vehicle at t_m - delay
@@ -232,7 +273,7 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
     # the state, estimated with the model (estimate.py): EKF + RTS over the nominal vehicle driven by
     # the commands, with a generalised-force disturbance and IMU biases
     p = model.pack_params(vehicle)
-    act = actuator_run_lead(command, dt, p, vehicle.n_units, lead)
+    act = (runs or ActuatorRuns()).get(command, dt, p, vehicle.n_units, lead)
     meas = estimate.measurements(rec, vehicle, t, d, corr.gyro_bias, corr.accel_bias)
     x0 = lead.x0 if lead is not None and lead.x0 is not None else estimate.initial_state(meas, env.surface_depth)
     est = estimate.smooth(meas, act, command, p, x0)
@@ -262,26 +303,26 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
     kinematic = np.zeros((len(t), 6))
     if q_meas is not None:
         # w = 2 vec(q* (x) q') from the attitude measurement, against the gyro smoothed alike
-        qd = savgol_filter(q_meas, w_s, 2, deriv=1, delta=dt, axis=0, mode="interp")
-        qs = savgol_filter(q_meas, w_s, 2, axis=0, mode="interp")
+        qd = savgol(q_meas, w_s, 2, deriv=1, delta=dt, axis=0)
+        qs = savgol(q_meas, w_s, 2, axis=0)
         w_att = 2.0 * np.column_stack([
             qs[:, 0] * qd[:, 1] - qs[:, 1] * qd[:, 0] - qs[:, 2] * qd[:, 3] + qs[:, 3] * qd[:, 2],
             qs[:, 0] * qd[:, 2] + qs[:, 1] * qd[:, 3] - qs[:, 2] * qd[:, 0] - qs[:, 3] * qd[:, 1],
             qs[:, 0] * qd[:, 3] - qs[:, 1] * qd[:, 2] + qs[:, 2] * qd[:, 1] - qs[:, 3] * qd[:, 0],
         ])
-        kinematic[:, :3] = savgol_filter(gyro, w_s, 2, axis=0, mode="interp") - w_att
+        kinematic[:, :3] = savgol(gyro, w_s, 2, axis=0) - w_att
     if has_mocap:
         # motion capture is the pool's, not the vehicle's: no sensor delay on it
         mpos = _interp(t, rec.mocap.time_s, rec.mocap.pos_ned_m)
-        a_ned = savgol_filter(mpos, w_m, 2, deriv=2, delta=dt, axis=0, mode="interp")
-        f_ned = savgol_filter(np.einsum("nij,nj->ni", R, accel), w_m, 2, axis=0, mode="interp")
+        a_ned = savgol(mpos, w_m, 2, deriv=2, delta=dt, axis=0)
+        f_ned = savgol(np.einsum("nij,nj->ni", R, accel), w_m, 2, axis=0)
         # specific force = R^T (a_ned - g e3): accel - mocap, in body axes
         kinematic[:, 3:] = np.einsum("nji,nj->ni", R, f_ned - a_ned + np.array([0.0, 0.0, env.g]))
-    omega = savgol_filter(gyro, w_s, 2, axis=0, mode="interp")
-    omega_dot = savgol_filter(gyro, w_s, 2, deriv=1, delta=dt, axis=0, mode="interp")
+    omega = savgol(gyro, w_s, 2, axis=0)
+    omega_dot = savgol(gyro, w_s, 2, deriv=1, delta=dt, axis=0)
     # v' = f + R^T g e3 - w x v (spec 5 inverted)
     lin_acc = accel + g_body - np.cross(gyro, v_body)
-    v_dot = savgol_filter(lin_acc, w_s, 2, axis=0, mode="interp")
+    v_dot = savgol(lin_acc, w_s, 2, axis=0)
     nu = np.column_stack([v_body, omega])
     nu_dot = np.column_stack([v_dot, omega_dot])
     # a white-noise probe per signal: noise of the level estimated from the native samples,
@@ -362,6 +403,38 @@ def actuator_run_lead(command: np.ndarray, dt: float, p: np.ndarray, n_units: in
     return actuator_run_commands(np.concatenate([lead.command, command]), dt, p, n_units, substeps)[m:]
 
 
+class ActuatorRuns:
+    """`actuator_run_lead`, remembered by what it depends on: the commands (lead-in included),
+    the grid spacing and the actuator parameters (`model.actuator_param_indices`). Windows of one
+    recording, their null draws (same commands) and candidates that leave the actuators alone
+    share one run; the same inputs give the same array, so sharing changes no result. Bounded:
+    the oldest runs are dropped past `max_bytes`."""
+
+    def __init__(self, max_bytes: int = 256 * 2 ** 20):
+        self.max_bytes = max_bytes
+        self._runs: dict = {}
+        self._bytes = 0
+
+    def get(self, command: np.ndarray, dt: float, p: np.ndarray, n_units: int, lead=None) -> np.ndarray:
+        h = hashlib.blake2b(digest_size=16)
+        h.update(np.ascontiguousarray(command, float).tobytes())
+        if lead is not None:
+            h.update(b"lead")
+            h.update(np.ascontiguousarray(lead.command, float).tobytes())
+        h.update(np.float64(dt).tobytes())
+        h.update(np.ascontiguousarray(p[model.actuator_param_indices(n_units)]).tobytes())
+        key = (h.digest(), command.shape, n_units)
+        run = self._runs.get(key)
+        if run is None:
+            run = actuator_run_lead(command, dt, p, n_units, lead)
+            run.setflags(write=False)
+            while self._runs and self._bytes + run.nbytes > self.max_bytes:
+                self._bytes -= self._runs.pop(next(iter(self._runs))).nbytes
+            self._runs[key] = run
+            self._bytes += run.nbytes
+        return run
+
+
 def actuator_run_commands(command: np.ndarray, dt: float, p: np.ndarray, n_units: int, substeps: int = 2) -> np.ndarray:
     """`actuator_run` on a held-command array. Initial state as spec 6: propellers at rest,
     joints at the first command, filters zero."""
@@ -401,7 +474,7 @@ def model_acceleration(traj: Trajectory, act: np.ndarray, p: np.ndarray, idx=Non
 
 def smooth(traj: Trajectory, y: np.ndarray) -> np.ndarray:
     """The Savitzky-Golay smoother the reconstruction used, applied to a model signal."""
-    return savgol_filter(y, _odd(round(SMOOTH_S / traj.dt_s)), 2, axis=0, mode="interp")
+    return savgol(y, _odd(round(SMOOTH_S / traj.dt_s)), 2, axis=0)
 
 
 def nominal_mass_diag(vehicle: Vehicle) -> np.ndarray:
@@ -421,10 +494,10 @@ def acceleration_residual(traj: Trajectory, act: np.ndarray, p: np.ndarray, acc=
     acc = model_acceleration(traj, act, p) if acc is None else acc
     out = np.empty_like(acc)
     win = _odd(round(SMOOTH_S / traj.dt_s))
-    out[:, :3] = savgol_filter(traj.lin_acc - acc[:, :3], win, 2, axis=0, mode="interp")
+    out[:, :3] = savgol(traj.lin_acc - acc[:, :3], win, 2, axis=0)
     dt = traj.dt_s
     integral = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * dt * (acc[1:, 3:] + acc[:-1, 3:]), axis=0)])
-    out[:, 3:] = savgol_filter(traj.gyro - integral, win, 2, deriv=1, delta=dt, axis=0, mode="interp")
+    out[:, 3:] = savgol(traj.gyro - integral, win, 2, deriv=1, delta=dt, axis=0)
     return out
 
 
