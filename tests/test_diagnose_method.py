@@ -273,3 +273,22 @@ def test_real_ardusub_logs_give_a_report(name, tmp_path, capsys):
     rep = json.loads((tmp_path / "r.json").read_text())
     assert rep["untestable"], "a 2-25 Hz log cannot test every candidate"
     assert all(u["reason"] for u in rep["untestable"])
+
+
+@pytest.mark.parametrize("effect, says", [
+    ("linear_damping", "linear and quadratic damping inseparable"),
+    ("thrust_inflow", "too little inflow to change the jets' thrust"),
+    ("current", "a drift and the damping it meets are inseparable"),
+    ("wall_proximity", "no heave motion within 0.3 m of the floor"),
+    ("sensor_delay", "IMU at 10 Hz"),
+])
+def test_untestable_reason_names_the_effect_s_own_limit(effect, says):
+    """A slow, deep recording at 10 Hz: each candidate's reason is its own, with its bound."""
+    from types import SimpleNamespace
+
+    n = 100
+    traj = SimpleNamespace(pos_ned_m=np.tile([0.0, 0.0, 1.0], (n, 1)), nu=np.full((n, 6), 0.01), dt_s=0.1)
+    score = decide.Score(effect, 1, 0.0, 0.0, np.zeros(1), np.array([0.4]), np.array([0.1]), None)
+    cal = decide.Calibration(8, 1.0, {}, {effect: 10.0}, 0.01, {})
+    why = core.untestable_reason(effect, score, cal, traj, V, None)
+    assert says in why and "Cramer-Rao sd 4x the smallest error worth finding" in why

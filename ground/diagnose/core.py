@@ -470,7 +470,10 @@ def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
             why = f"never within {1.5 * R:.2f} m of the surface"
     elif effect in ("linear_damping", "quadratic_damping", "thrust_inflow", "current"):
         if speed.max() < 0.15:
-            why = f"speed never above 0.15 m/s (max {speed.max():.2f}): linear and quadratic damping inseparable"
+            why = f"speed never above 0.15 m/s (max {speed.max():.2f}): " + {
+                "thrust_inflow": "too little inflow to change the jets' thrust",
+                "current": "a drift and the damping it meets are inseparable"}.get(
+                effect, "linear and quadratic damping inseparable")
     elif effect in ("azimuth_transient", "servo_lag", "motor_lag", "sensor_delay"):
         if imu_hz < 40:
             why = f"IMU at {imu_hz:.0f} Hz: too slow for transients of tens of milliseconds"
