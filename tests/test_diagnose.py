@@ -277,3 +277,22 @@ def test_row_wise_attitude_helpers_equal_the_model():
     np.testing.assert_allclose(q, [model.euler_to_quat(*row) for row in e], atol=1e-14)
     np.testing.assert_allclose(replay._quat_to_euler_rows(q), [model.quat_to_euler(row) for row in q], atol=1e-12)
     np.testing.assert_allclose(replay.rotation_rows(q), [model.rotation(row) for row in q], atol=1e-14)
+
+
+def test_a_log_in_short_fragments_is_a_verdict_not_an_error(quiet_session):
+    """An IMU that only ever sends bursts of a few samples between stops longer than a segment
+    gap: the longest stretch has the stream, too little of it. Every candidate untestable, the
+    reason says how many samples, no 'no usable imu stream' (the stream is there)."""
+    import dataclasses
+
+    from ground.diagnose import diagnose
+
+    imu = quiet_session.imu
+    keep = (imu.time_s % 2.0) < 0.04  # 0.04 s of samples every 2 s
+    bursty = dataclasses.replace(quiet_session, imu=dataclasses.replace(
+        imu, time_s=imu.time_s[keep], accel_frd_m_s2=imu.accel_frd_m_s2[keep], gyro_frd_rad_s=imu.gyro_frd_rad_s[keep]))
+    assert len(bursty.segment_bounds()) > 10
+    rep = diagnose(bursty, V).report
+    assert rep["findings"] == []
+    assert len(rep["untestable"]) == len(candidates.candidates_for(V))
+    assert all("imu samples in this stretch" in u["reason"] for u in rep["untestable"])

@@ -160,10 +160,12 @@ def grid_for(rec) -> tuple[np.ndarray, float]:
     """The uniform grid: IMU period, over the span where IMU, pressure and commands all exist."""
     for name in ("imu", "pressure", "servo"):
         s = getattr(rec, name)
-        if s is None or len(s.time_s) < 10:
+        if s is None or not len(s.time_s):
             raise ReplayError(
                 f"{rec.source}: the recording has no usable {name} stream "
                 f"({'HIGHRES_IMU or SCALED_IMU' if name == 'imu' else 'SCALED_PRESSURE2' if name == 'pressure' else 'SERVO_OUTPUT_RAW'} needed)")
+        if len(s.time_s) < 10:  # the stream is there, this stretch of it is too short: a verdict
+            raise TooShort(f"{rec.source}: only {len(s.time_s)} {name} samples in this stretch")
     dt = float(np.median(np.diff(rec.imu.time_s)))
     t0 = max(rec.imu.time_s[0], rec.pressure.time_s[0], rec.servo.time_s[0])
     t1 = min(rec.imu.time_s[-1], rec.pressure.time_s[-1])
