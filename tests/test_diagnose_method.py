@@ -260,6 +260,8 @@ def test_repro_buoyancy_without_motion_capture_is_buoyancy(tmp_path):
     assert got == pytest.approx(truth.body.volume, rel=0.15)
     assert abs(got - truth.body.volume) < 3 * sd
     assert rep["fit"]["holdout"]["after"]["total"] < rep["fit"]["holdout"]["before"]["total"]
+    cur = next(u for u in rep["untestable"] if u["effect"] == "current")  # no position measured
+    assert cur["reason"].startswith("horizontal: no position or velocity over ground measured")
 
 
 @pytest.mark.slow
@@ -292,3 +294,45 @@ def test_untestable_reason_names_the_effect_s_own_limit(effect, says):
     cal = decide.Calibration(8, 1.0, {}, {effect: 10.0}, 0.01, {})
     why = core.untestable_reason(effect, score, cal, traj, V, None)
     assert says in why and "Cramer-Rao sd 4x the smallest error worth finding" in why
+
+
+def test_a_steady_horizontal_current_leaves_imu_attitude_and_depth_unchanged():
+    """Why the current is vertical-only without motion capture (candidates_for): the plant
+    flown in a 0.15 m/s current, started moving with the water, gives the same IMU, attitude and
+    pressure samples as in still water under the same commands, turning included."""
+    vc = np.array([0.15, -0.10, 0.0])
+    wet = V.with_values({"environment.current": list(vc)})
+    cmds = [np.r_[[40.0, 10.0, 40.0, 10.0], [0.3, -0.2, 0.1, 0.0], [0.0, 0.2, -0.1, 0.1]],
+            np.r_[[10.0, 50.0, 20.0, 50.0], [-0.4, 0.3, 0.0, 0.2], [0.2, 0.0, 0.1, -0.2]]]
+    still = Plant(V, noise=False, command=cmds[0])
+    state = still.state.copy()
+    state[7:10] = vc  # at rest in the water: ground velocity = R^T v_c, level and heading north
+    moving = Plant(wet, noise=False, command=cmds[0], state=state)
+    a, b = [], []
+    for k in range(8):
+        for p in (still, moving):
+            p.set_command(cmds[k % 2])
+        a.append(still.advance(2.5 * (k + 1)))
+        b.append(moving.advance(2.5 * (k + 1)))
+    assert abs(moving.state[2] - still.state[2]) < 1e-9  # the same depth
+    assert np.hypot(*(moving.state[:2] - still.state[:2])) > 0.15 * 20 * 0.9  # carried away 3 m
+    assert abs(model.quat_to_euler(still.state[3:7])[2]) > 0.5  # it turned
+    from dataclasses import astuple
+
+    compared = {"imu": 0, "pressure": 0, "attitude": 0}
+    for sa, sb in zip(a, b):
+        for name in compared:
+            xs, ys = getattr(sa, name), getattr(sb, name)
+            assert len(xs) == len(ys)
+            for x, y in zip(xs, ys):
+                np.testing.assert_allclose(np.hstack(astuple(y)), np.hstack(astuple(x)), rtol=1e-10, atol=1e-8, err_msg=name)
+                compared[name] += 1
+    assert min(compared.values()) > 100
+
+
+def test_without_motion_capture_the_current_candidate_is_vertical_only():
+    full = next(c for c in core.candidates_for(V) if c.effect == "current")
+    vert = next(c for c in core.candidates_for(V, over_ground=False) if c.effect == "current")
+    assert full.keys == tuple(("environment.current", i) for i in range(3))
+    assert vert.keys == (("environment.current", 2),)
+    assert decide.reference_magnitude(vert, V).shape == (1,)

@@ -166,9 +166,16 @@ def _vec(effect, kind, key, values, lo_f, hi_f, floor=0.0, switch=()):
                      tuple(max(x * hi_f, floor + 1e-3 * (1 + abs(x))) for x in vals), switch)
 
 
-def candidates_for(v: Vehicle) -> list[Candidate]:
+def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
     """One candidate per effect id (missing if off in `v`, misestimated if on and it has
-    parameters) and per misestimated physical parameter, IMU bias, sensor delay, thruster fault."""
+    parameters) and per misestimated physical parameter, IMU bias, sensor delay, thruster fault.
+
+    Without a measurement of position or velocity over ground (`over_ground` False: no motion
+    capture), the current keeps only its vertical component, the one the depth sees. A steady
+    horizontal current is not observable from IMU, attitude and depth at all: the relative
+    motion obeys the still-water equations (Fossen 2011 eq. 10.4, in nu_r), the accelerometer
+    measures R^T d/dt(R v) = nu_r' + w x nu_r, blind to a constant v_c, and only the position
+    drifts with it (eta' = J nu_r + v_c)."""
     k = v.n_units
     out: list[Candidate] = []
     on = v.effects.on
@@ -197,6 +204,8 @@ def candidates_for(v: Vehicle) -> list[Candidate]:
     out.append(Candidate("current", "misestimated" if on("current") else "missing",
                          tuple(("environment.current", i) for i in range(3)), tuple(cur),
                          (-1.0,) * 3, (1.0,) * 3, () if on("current") else ("current",)))
+    if not over_ground:
+        out[-1] = out[-1].subset((2,))
     # --- misestimated physical parameters
     out.append(_vec("added_mass", "misestimated", "hydro.added_mass", v.hydro.added_mass, 0.0, 4.0, 0.0))
     out.append(_vec("linear_damping", "misestimated", "hydro.linear_damping", v.hydro.linear_damping, 0.0, 4.0, 0.0))

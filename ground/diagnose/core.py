@@ -147,7 +147,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     ev_fit = SegmentedEvaluator(evs)
     res0_fit = ev_fit.residual(ev_fit.base)
     split_fit = locate.make_split([e.traj0 for e in evs], [locate.noise_realisation(e, e.residual(e.base)) for e in evs])
-    cands = candidates_for(vehicle)
+    over_ground = traj.has_mocap  # a position measurement: the only one that sees a horizontal current
+    cands = candidates_for(vehicle, over_ground)
     families = [c.effect for c in cands]
     _say(progress, f"scoring {len(cands)} candidates on {len(recs_w)} window(s) of {recs_w[0].duration_s:.0f} s")
     scores = decide.linear_scores(ev_fit, cands, split_fit, res0_fit, vehicle) + [
@@ -174,6 +175,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     untestable = [{"effect": c.public, "kind": c.kind,
                    "reason": untestable_reason(c.effect, by_effect[c.effect], cal, traj, vehicle, rec)}
                   for c in cands if c.effect in skip]
+    if not over_ground:  # candidates_for: the horizontal current is not observable here
+        cur = next(c for c in cands if c.effect == "current")
+        why = ("horizontal: " + HORIZONTAL_CURRENT
+               + ("" if "current" not in skip else "; vertical: " + next(u["reason"] for u in untestable if u["effect"] == "current")))
+        untestable = [u for u in untestable if u["effect"] != "current"] + [{"effect": "current", "kind": cur.kind, "reason": why}]
     for s in scores:
         _say(progress, f"{s.effect:18s} S = {s.statistic:10.1f}  threshold {cal.threshold[s.effect]:8.1f}"
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")
@@ -445,6 +451,10 @@ def _longest_segment(rec, progress):
     a, b = max(bounds, key=lambda s: s[1] - s[0])
     _say(progress, f"{len(bounds)} segments between gaps: diagnosing the longest, {a:.1f}-{b:.1f} s")
     return rec.between(a, np.nextafter(b, np.inf))
+
+
+HORIZONTAL_CURRENT = ("no position or velocity over ground measured (motion capture): a steady current carries "
+                      "the vehicle with the water, and IMU, attitude and depth see nothing of it")
 
 
 def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:

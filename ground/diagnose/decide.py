@@ -78,13 +78,13 @@ def reference_magnitude(cand, vehicle) -> np.ndarray:
     x0 = np.abs(np.asarray(cand.x0, float))
     e = cand.effect
     if e == "current":
-        return np.full(3, 0.05)  # m/s
+        return np.full(len(x0), 0.05)  # m/s
     if e == "sensor_delay":
         return np.array([0.02])  # s
     if e == "thruster_fault":
         return np.full(len(x0), 0.2)
     if e == "restoring_moment":
-        return np.full(3, 0.005)  # m of centre-of-buoyancy
+        return np.full(len(x0), 0.005)  # m of centre-of-buoyancy
     if e == "buoyancy":
         return 0.005 * x0  # 0.5 % of the volume
     if cand.n_params == 0:
