@@ -689,6 +689,8 @@ def _within_sd(case: Case, findings: list, k: float):
         if got is None or sd is None:
             return None
         t, g, s = (np.atleast_1d(np.asarray(v, float)) for v in (truth, got, sd))
+        if not np.isfinite(s).all():  # a checked element the finding did not estimate
+            return None
         if np.any(np.abs(g - t) > k * np.maximum(s, 1e-300)):
             return False
     return True

@@ -262,6 +262,7 @@ def test_repro_buoyancy_without_motion_capture_is_buoyancy(tmp_path):
     assert rep["fit"]["holdout"]["after"]["total"] < rep["fit"]["holdout"]["before"]["total"]
     cur = next(u for u in rep["untestable"] if u["effect"] == "current")  # no position measured
     assert cur["reason"].startswith("horizontal: no position or velocity over ground measured")
+    assert cur["parameters"][:2] == ["environment.current[0]", "environment.current[1]"]
 
 
 @pytest.mark.slow
@@ -336,3 +337,24 @@ def test_without_motion_capture_the_current_candidate_is_vertical_only():
     assert full.keys == tuple(("environment.current", i) for i in range(3))
     assert vert.keys == (("environment.current", 2),)
     assert decide.reference_magnitude(vert, V).shape == (1,)
+
+
+@pytest.mark.slow
+def test_a_missing_current_is_scored(tmp_path_factory):
+    """A nominal vehicle with the current switched off: its candidate starts at zero, where the
+    secant of a missing effect divided by zero and the family scored 0 on any recording. Now
+    the current of the recording (motion capture on) stands far above chance with the right
+    signs."""
+    vc = [0.10, -0.08, 0.0]
+    rec = _session(tmp_path_factory, "cur", V.with_values({"environment.current": vc}), mocap=True, duration=40.0)
+    nominal = V.with_effects(current=False)
+    cand = next(c for c in core.candidates_for(nominal) if c.effect == "current")
+    assert cand.kind == "missing" and cand.x0 == (0.0, 0.0, 0.0)
+    ev = Evaluator(rec, nominal)
+    res0 = ev.residual(ev.base)
+    from ground.diagnose import locate
+
+    split = locate.make_split(ev.traj0, locate.noise_realisation(ev, res0))
+    (score,) = decide.linear_scores(ev, [cand], split, res0, nominal)
+    assert score.statistic > chi2.ppf(1 - 1e-6, 3)
+    assert score.theta[0] > 0.03 and score.theta[1] < -0.02

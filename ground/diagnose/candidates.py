@@ -109,7 +109,8 @@ class Candidate:
     def parameters(self, theta, base: Vehicle, deviations: bool = False) -> dict:
         """Fitted values keyed by vehicle-file key, in that key's shape (spec/recording.md 2).
 
-        With `deviations`, `theta` holds standard deviations: elements not fitted are 0."""
+        With `deviations`, `theta` holds standard deviations: elements not fitted are None (not
+        estimated, which 0 would misread as known exactly)."""
         out: dict = {}
         gain = [1.0, 1.0]
         for (key, idx), val in zip(self.keys, np.asarray(theta, float)):
@@ -125,7 +126,8 @@ class Candidate:
                 cur = out.get(key)
                 if cur is None:
                     n = 3 if key.startswith("sensors.") else len(base.get(key))
-                    cur = [0.0] * n if key.startswith("sensors.") or deviations else [float(c) for c in base.get(key)]
+                    cur = ([None] * n if deviations else [0.0] * n if key.startswith("sensors.")
+                           else [float(c) for c in base.get(key)])
                 cur[idx] = float(f"{val:.5g}")
                 out[key] = cur
         if any(k == CURVE_GAIN for k, _ in self.keys):

@@ -45,7 +45,7 @@ PHRASES = {
     "azimuth_transient": "follows the joint rates through a band-pass (seed 004 transients)",
     "surface_proximity": "appears only near the free surface (buoyancy and added mass fall)",
     "wall_proximity": "appears near the floor with heave acceleration (gap effect)",
-    "current": "follows heading like a steady water velocity",
+    "current": "follows heading like a steady water velocity (vertical only: a steady drift in depth)",
     "added_mass": "follows the acceleration",
     "linear_damping": "follows the velocity",
     "quadratic_damping": "follows the velocity squared",
@@ -138,7 +138,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         try:
             replay.grid_for(w)
             recs_w.append(w)
-        except replay.TooShort:
+        except replay.ReplayError:  # too short, or a stream that starts later than the window
             continue
     if not recs_w:
         return _insufficient(rec, vehicle, "no stretch where IMU, pressure and commands overlap long enough", t_start)
@@ -175,11 +175,15 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     untestable = [{"effect": c.public, "kind": c.kind,
                    "reason": untestable_reason(c.effect, by_effect[c.effect], cal, traj, vehicle, rec)}
                   for c in cands if c.effect in skip]
-    if not over_ground:  # candidates_for: the horizontal current is not observable here
+    if not over_ground:  # candidates_for: the horizontal current is not observable here; the
+        # entry names the parameters it covers (the vertical one too when that is untestable)
         cur = next(c for c in cands if c.effect == "current")
+        vertical = "current" in skip
         why = ("horizontal: " + HORIZONTAL_CURRENT
-               + ("" if "current" not in skip else "; vertical: " + next(u["reason"] for u in untestable if u["effect"] == "current")))
-        untestable = [u for u in untestable if u["effect"] != "current"] + [{"effect": "current", "kind": cur.kind, "reason": why}]
+               + ("; vertical: " + next(u["reason"] for u in untestable if u["effect"] == "current") if vertical else ""))
+        untestable = [u for u in untestable if u["effect"] != "current"] + [{
+            "effect": "current", "kind": cur.kind, "reason": why,
+            "parameters": [f"environment.current[{i}]" for i in ((0, 1, 2) if vertical else (0, 1))]}]
     for s in scores:
         _say(progress, f"{s.effect:18s} S = {s.statistic:10.1f}  threshold {cal.threshold[s.effect]:8.1f}"
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")

@@ -113,10 +113,12 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
             if c.n_params == 0:
                 cols = [ev.residual(c.apply((), ev.base)) - res0]
                 theta0 = np.zeros(1)
-            elif c.switch_on:
+            elif c.switch_on and c.n_params == 1 and c.x0[0] != 0:
                 # a missing effect with one parameter: the residual without it is the one at 0,
                 # so the slope is the secant from 0 to its start value (a tiny lag would make the
-                # 5 ms actuator steps unstable, so no small step here)
+                # 5 ms actuator steps unstable, so no small step here). One that starts at zero
+                # (a missing current) is switched on at zero, the nominal itself, and takes the
+                # finite differences below (the secant divided by zero: never testable).
                 theta0 = np.zeros(c.n_params)
                 cols = [(ev.residual(c.apply(c.x0, ev.base)) - res0) / float(c.x0[0])]
             else:

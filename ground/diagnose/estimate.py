@@ -453,7 +453,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
         m = s1 - s0
         sl = slice(s0, s1)
         if ci == len(starts) - 1:
-            xf, Pf, xp, Pp, Fs = last
+            (xf, Pf, xp, Pp, Fs), last = last, None  # held once: memory stays one chunk of stores
         else:  # re-run from the chunk's checkpoint, storing this time
             xf, Pf, xp, Pp, Fs = stores(m)
             xc, Pc = checkpoints[ci]

@@ -122,8 +122,7 @@ def _savgol_ops(window: int, order: int, deriv: int, delta: float):
     edge samples), made once per shape; scipy refits the edges by `polyfit` on every call."""
     half = window // 2
     pos = np.arange(window, dtype=float)
-    V = np.vander(pos, order + 1)  # highest power first, like np.polyfit
-    fit = np.linalg.pinv(V)  # (order+1, window): polynomial coefficients of a window
+    fit = np.polyfit(pos, np.eye(window), order)  # (order+1, window): the coefficients scipy's edge fit gives, highest power first
     powers = np.arange(order, -1, -1)
     edges = []
     for at in (pos[:half], pos[window - half:]):
@@ -138,8 +137,9 @@ def _savgol_ops(window: int, order: int, deriv: int, delta: float):
 
 def savgol(y, window: int, order: int, deriv: int = 0, delta: float = 1.0, axis: int = 0) -> np.ndarray:
     """`scipy.signal.savgol_filter(y, window, order, deriv, delta, axis, mode="interp")` with its
-    operators made once per shape (`_savgol_ops`): the same numbers, without refitting the
-    edges by least squares on every call (a third of the diagnosis' time went there)."""
+    operators made once per shape (`_savgol_ops`): the same numbers up to rounding (the edges
+    fitted by the same `polyfit`, once), without refitting the edges by least squares on every
+    call (an eighth of the diagnosis' time went there)."""
     y = np.moveaxis(np.asarray(y, float), axis, 0)
     if y.shape[0] < window:
         return np.moveaxis(savgol_filter(y, window, order, deriv=deriv, delta=delta, axis=0, mode="interp"), 0, axis)
@@ -410,7 +410,8 @@ class ActuatorRuns:
     the grid spacing and the actuator parameters (`model.actuator_param_indices`). Windows of one
     recording, their null draws (same commands) and candidates that leave the actuators alone
     share one run; the same inputs give the same array, so sharing changes no result. Bounded:
-    the oldest runs are dropped past `max_bytes`."""
+    the least recently used runs are dropped past `max_bytes` (a run is stored without its
+    lead-in, so what is counted is what is held)."""
 
     def __init__(self, max_bytes: int = 256 * 2 ** 20):
         self.max_bytes = max_bytes
@@ -426,9 +427,11 @@ class ActuatorRuns:
         h.update(np.float64(dt).tobytes())
         h.update(np.ascontiguousarray(p[model.actuator_param_indices(n_units)]).tobytes())
         key = (h.digest(), command.shape, n_units)
-        run = self._runs.get(key)
-        if run is None:
-            run = actuator_run_lead(command, dt, p, n_units, lead)
+        run = self._runs.pop(key, None)
+        if run is not None:  # used again: to the back of the eviction order
+            self._runs[key] = run
+        else:
+            run = np.array(actuator_run_lead(command, dt, p, n_units, lead))  # a copy: not a view into the lead-in's run
             run.setflags(write=False)
             while self._runs and self._bytes + run.nbytes > self.max_bytes:
                 self._bytes -= self._runs.pop(next(iter(self._runs))).nbytes
