@@ -5,6 +5,7 @@ interval, and the recordings of the issue's repros."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -358,3 +359,16 @@ def test_a_missing_current_is_scored(tmp_path_factory):
     (score,) = decide.linear_scores(ev, [cand], split, res0, nominal)
     assert score.statistic > chi2.ppf(1 - 1e-6, 3)
     assert score.theta[0] > 0.03 and score.theta[1] < -0.02
+
+
+def test_correction_size_in_units_of_the_smallest_error_worth_finding():
+    """Hand computed: 0.25 % more volume is half of the 0.5 % worth finding; a 0.03 m/s current
+    0.6 of 0.05 m/s; a missing effect switched on is the correction itself."""
+    cands = {c.effect: c for c in core.candidates_for(V)}
+    vol = V.body.volume
+    assert core.correction_size(cands["buoyancy"], [vol * 1.0025], V) == pytest.approx(0.5)
+    assert core.correction_size(cands["current"], [0.0, -0.03, 0.01], V) == pytest.approx(0.6)
+    tm = V.thruster.motor_time_constant
+    assert core.correction_size(cands["motor_lag"], [tm * 1.01], V) == pytest.approx(0.05)
+    missing = next(c for c in core.candidates_for(V.with_effects(motor_lag=False)) if c.effect == "motor_lag")
+    assert missing.switch_on and core.correction_size(missing, [0.001], V) == math.inf

@@ -33,6 +33,9 @@ LEAD_TAUS = 5.0  # ... and this many of the actuator subsystem's slowest time co
 LEAD_MAX_S = 60.0
 MIN_DRAWS = 2  # fewer calibrated null draws than this: no finding (the thresholds would be guesses)
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
+MIN_CORRECTION = 0.5  # a fitted correction under half the smallest error worth finding is no finding
+# (the same half as the testability rule, decide.testable): eval 526, a control, named the
+# transient's gain 0.4 % off its nominal with a calibrated confidence of 0.96
 Z_GATE = 2.5  # the data-driven `unknown` term (not calibrated by the null draws) must lower the
 # held-out chi-square by 2 Z_GATE of its sd, and pass the never-worse gate
 UNKNOWN_MIN_EXPLAINED = 0.5  # ... and explain at least this share of the held-out excess (its
@@ -199,8 +202,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             c = c.subset(s.keep)
         x0 = tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params else None
         f = fit(ev_fit, c, split_fit, res0_fit, x0=x0)
-        _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}")
-        if f.delta_holdout > 0:
+        size = correction_size(c, f.theta, vehicle)
+        _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}, correction {size:.2f}x the smallest worth finding")
+        if f.delta_holdout > 0 and size >= MIN_CORRECTION:
             single.append(f)
     # rank by both kinds of evidence at once: the disturbance regression's held-out drop (which
     # prefers the parsimonious force: a constant heave force is buoyancy, not four thrust scales)
@@ -224,6 +228,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 continue
             pc = combine(best.candidate, other.candidate)
             pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(best.theta) + tuple(other.theta))
+            if correction_size(other.candidate, pf.theta[best.candidate.n_params:], vehicle) < MIN_CORRECTION:
+                continue
             if pf.delta_holdout - best.delta_holdout > SECOND_MIN_GAIN * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
                 best_pair = (pf, other)
@@ -506,6 +512,17 @@ def _bias_finding(s, cal, n_fam) -> dict:
             "explanation": (f"the smoother's IMU bias states are {s.statistic / cal.threshold['imu_bias']:.1f}x "
                             f"their calibrated threshold; {PHRASES['imu_bias']}: gyro "
                             f"{_fmt(params['sensors.gyro_bias'])} rad/s, accel {_fmt(params['sensors.accel_bias'])} m/s^2")}
+
+
+def correction_size(c, theta, vehicle: Vehicle) -> float:
+    """How far a fitted candidate moves the nominal model, in units of the smallest error worth
+    finding (`decide.reference_magnitude`): the largest |theta - theta_nominal| / reference over
+    its parameters. A missing effect switched on is measured from its absence (inf: the effect
+    itself is the correction)."""
+    if c.switch_on or not c.n_params:
+        return math.inf
+    ref = decide.reference_magnitude(c, vehicle)
+    return float(np.max(np.abs(np.asarray(theta, float) - np.asarray(c.x0, float)) / np.maximum(ref, 1e-300)))
 
 
 def _split_pair(pf: Fit, a: Fit, b: Fit):
