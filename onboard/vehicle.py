@@ -552,6 +552,9 @@ def _check_full_rank(v: Vehicle, err: "_Errors") -> None:
 BUOYANCY_RATIO = (0.5, 2.0)  # rho V / m of a vehicle that dives and surfaces on its thrusters
 
 
+MIN_JET_THRUST_N = 1e-3  # a jet's thrust at full speed below this is a jet that pushes nothing
+
+
 def _check_plausible(v: Vehicle, err: "_Errors") -> None:
     """What each key's range cannot see (issue 15, second pass: thrust coefficients of zero, or a
     1000 kg vehicle of the stock 6.65 litres, passed): buoyancy against weight rho V / m within
@@ -568,9 +571,13 @@ def _check_plausible(v: Vehicle, err: "_Errors") -> None:
         js = [lo, hi] + ([-k1 / (2 * k2)] if k2 > 0 and lo < -k1 / (2 * k2) < hi else [])
         j = min(js, key=lambda x: k0 + k1 * x + k2 * x * x)
         k = k0 + k1 * j + k2 * j * j
+        t = v.environment.rho * v.thruster.n_max ** 2 * v.thruster.diameter ** 4 * k  # seed 000 eq. 15
         if not k > 0:
             err.lines.append(f"thruster.kt [{k0:g}, {k1:g}, {k2:g}]: K(J) {k:.3g} at J = {j:.3g}: expected "
                              f"K(J) > 0 over j_range [{lo:g}, {hi:g}] (a jet that pushes nothing, or backwards)")
+        elif not t >= MIN_JET_THRUST_N:  # positive but nothing: 1e-300 squared is 0 in the allocation's weights
+            err.lines.append(f"thruster.kt [{k0:g}, {k1:g}, {k2:g}]: a jet's thrust at n_max is {t:.3g} N at J = "
+                             f"{j:.3g}: expected at least {MIN_JET_THRUST_N:g} N (a jet that pushes nothing)")
 
 
 def _transient_stable(row: str, coeffs) -> bool:

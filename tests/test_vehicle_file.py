@@ -326,6 +326,10 @@ ABSURD = [
     ("kt = [0.350165, -0.30192, 0.20207]", "kt = [0.350165, -1.30192, 0.20207]",
      "thruster.kt [0.350165, -1.30192, 0.20207]: K(J) -0.294 at J = 0.54: expected K(J) > 0 over j_range [0, 0.54] "
      "(a jet that pushes nothing, or backwards)"),
+    # a fuzz example (2026-11-25): positive but nothing (hand: 1000 x 83.3^2 x 0.0365^4 x 1e-300 = 1.23e-299 N)
+    ("kt = [0.350165, -0.30192, 0.20207]", "kt = [1e-300, 0.0, 0.0]",
+     "thruster.kt [1e-300, 0, 0]: a jet's thrust at n_max is 1.23e-299 N at J = 0: expected at least 0.001 N "
+     "(a jet that pushes nothing)"),
     # issue 15, adversarial re-run: seed-004 rows whose denominator is zero or unstable passed
     # (onboard died on a LinAlgError / an unstable yaw-preview plan; the plant diverged)
     ("m1z = [711.34, 15.20, 839.31, 4751.00, 229.90]", "m1z = [711.34, 0.0, 0.0, 0.0, 0.0]",
