@@ -366,9 +366,24 @@ def test_correction_size_in_units_of_the_smallest_error_worth_finding():
     0.6 of 0.05 m/s; a missing effect switched on is the correction itself."""
     cands = {c.effect: c for c in core.candidates_for(V)}
     vol = V.body.volume
-    assert core.correction_size(cands["buoyancy"], [vol * 1.0025], V) == pytest.approx(0.5)
-    assert core.correction_size(cands["current"], [0.0, -0.03, 0.01], V) == pytest.approx(0.6)
+    assert decide.correction_size(cands["buoyancy"], [vol * 1.0025], V) == pytest.approx(0.5)
+    assert decide.correction_size(cands["current"], [0.0, -0.03, 0.01], V) == pytest.approx(0.6)
     tm = V.thruster.motor_time_constant
-    assert core.correction_size(cands["motor_lag"], [tm * 1.01], V) == pytest.approx(0.05)
+    assert decide.correction_size(cands["motor_lag"], [tm * 1.01], V) == pytest.approx(0.05)
     missing = next(c for c in core.candidates_for(V.with_effects(motor_lag=False)) if c.effect == "motor_lag")
-    assert missing.switch_on and core.correction_size(missing, [0.001], V) == math.inf
+    assert missing.switch_on and decide.correction_size(missing, [0.001], V) == math.inf
+
+
+def test_the_untestable_current_names_the_parameters_it_covers():
+    """Horizontal only while the vertical current was tested; all three, with both reasons, when
+    the recording could not test the vertical one either; other entries kept."""
+    vert = next(c for c in core.candidates_for(V, over_ground=False) if c.effect == "current")
+    other = {"effect": "wall_proximity", "kind": "misestimated", "reason": "no heave motion"}
+    one = core._horizontal_current_untestable([other], vert)
+    assert one[0] == other and one[1]["parameters"] == ["environment.current[0]", "environment.current[1]"]
+    assert one[1]["reason"].startswith("horizontal: no position or velocity over ground")
+    both = core._horizontal_current_untestable(
+        [{"effect": "current", "kind": vert.kind, "reason": "Cramer-Rao sd 3x"}, other], vert)
+    assert [u["effect"] for u in both] == ["wall_proximity", "current"]
+    assert both[1]["parameters"] == [f"environment.current[{i}]" for i in range(3)]
+    assert both[1]["reason"].endswith("; vertical: Cramer-Rao sd 3x")

@@ -174,10 +174,12 @@ def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
 
     Without a measurement of position or velocity over ground (`over_ground` False: no motion
     capture), the current keeps only its vertical component, the one the depth sees. A steady
-    horizontal current is not observable from IMU, attitude and depth at all: the relative
-    motion obeys the still-water equations (Fossen 2011 eq. 10.4, in nu_r), the accelerometer
-    measures R^T d/dt(R v) = nu_r' + w x nu_r, blind to a constant v_c, and only the position
-    drifts with it (eta' = J nu_r + v_c)."""
+    horizontal current is not observable from IMU, attitude and depth at all: for an
+    irrotational constant current the relative motion obeys the still-water equations in
+    nu_r = nu - [R^T v_c; 0] (Fossen 2011, section 10.3); the body-frame linear velocity over
+    ground is v = v_r + R^T v_c, whose inertial rate is R^T d/dt(R v) = v' + w x v = v_r' + w x v_r
+    (R v_c is constant), so the accelerometer f = v' + w x v - R^T g e3 (spec 5) does not see
+    v_c; only the position drifts with it (p' = R v_r + v_c)."""
     k = v.n_units
     out: list[Candidate] = []
     on = v.effects.on

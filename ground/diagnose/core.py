@@ -33,9 +33,6 @@ LEAD_TAUS = 5.0  # ... and this many of the actuator subsystem's slowest time co
 LEAD_MAX_S = 60.0
 MIN_DRAWS = 2  # fewer calibrated null draws than this: no finding (the thresholds would be guesses)
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
-MIN_CORRECTION = 0.5  # a fitted correction under half the smallest error worth finding is no finding
-# (the same half as the testability rule, decide.testable): eval 526, a control, named the
-# transient's gain 0.4 % off its nominal with a calibrated confidence of 0.96
 Z_GATE = 2.5  # the data-driven `unknown` term (not calibrated by the null draws) must lower the
 # held-out chi-square by 2 Z_GATE of its sd, and pass the never-worse gate
 UNKNOWN_MIN_EXPLAINED = 0.5  # ... and explain at least this share of the held-out excess (its
@@ -178,15 +175,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     untestable = [{"effect": c.public, "kind": c.kind,
                    "reason": untestable_reason(c.effect, by_effect[c.effect], cal, traj, vehicle, rec)}
                   for c in cands if c.effect in skip]
-    if not over_ground:  # candidates_for: the horizontal current is not observable here; the
-        # entry names the parameters it covers (the vertical one too when that is untestable)
-        cur = next(c for c in cands if c.effect == "current")
-        vertical = "current" in skip
-        why = ("horizontal: " + HORIZONTAL_CURRENT
-               + ("; vertical: " + next(u["reason"] for u in untestable if u["effect"] == "current") if vertical else ""))
-        untestable = [u for u in untestable if u["effect"] != "current"] + [{
-            "effect": "current", "kind": cur.kind, "reason": why,
-            "parameters": [f"environment.current[{i}]" for i in ((0, 1, 2) if vertical else (0, 1))]}]
+    if not over_ground:  # candidates_for: the horizontal current is not observable here
+        untestable = _horizontal_current_untestable(untestable, next(c for c in cands if c.effect == "current"))
     for s in scores:
         _say(progress, f"{s.effect:18s} S = {s.statistic:10.1f}  threshold {cal.threshold[s.effect]:8.1f}"
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")
@@ -202,9 +192,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             c = c.subset(s.keep)
         x0 = tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params else None
         f = fit(ev_fit, c, split_fit, res0_fit, x0=x0)
-        size = correction_size(c, f.theta, vehicle)
+        size = decide.correction_size(c, f.theta, vehicle)
         _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}, correction {size:.2f}x the smallest worth finding")
-        if f.delta_holdout > 0 and size >= MIN_CORRECTION:
+        if f.delta_holdout > 0 and size >= decide.HALF_WORTH_FINDING:  # decide.correction_size
             single.append(f)
     # rank by both kinds of evidence at once: the disturbance regression's held-out drop (which
     # prefers the parsimonious force: a constant heave force is buoyancy, not four thrust scales)
@@ -228,7 +218,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 continue
             pc = combine(best.candidate, other.candidate)
             pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(best.theta) + tuple(other.theta))
-            if correction_size(other.candidate, pf.theta[best.candidate.n_params:], vehicle) < MIN_CORRECTION:
+            if decide.correction_size(other.candidate, pf.theta[best.candidate.n_params:], vehicle) < decide.HALF_WORTH_FINDING:
                 continue
             if pf.delta_holdout - best.delta_holdout > SECOND_MIN_GAIN * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
@@ -463,8 +453,18 @@ def _longest_segment(rec, progress):
     return rec.between(a, np.nextafter(b, np.inf))
 
 
-HORIZONTAL_CURRENT = ("no position or velocity over ground measured (motion capture): a steady current carries "
-                      "the vehicle with the water, and IMU, attitude and depth see nothing of it")
+def _horizontal_current_untestable(untestable: list, current) -> list:
+    """The untestable list with one entry for the current that names the parameters it covers:
+    the horizontal ones (candidates_for, over_ground False), and the vertical one too when the
+    recording could not test that either (its own reason kept after the horizontal one)."""
+    vertical = next((u for u in untestable if u["effect"] == "current"), None)
+    why = ("horizontal: no position or velocity over ground measured (motion capture): a steady current "
+           "carries the vehicle with the water, and IMU, attitude and depth see nothing of it")
+    if vertical is not None:
+        why += "; vertical: " + vertical["reason"]
+    return [u for u in untestable if u["effect"] != "current"] + [{
+        "effect": "current", "kind": current.kind, "reason": why,
+        "parameters": [f"environment.current[{i}]" for i in ((0, 1) if vertical is None else (0, 1, 2))]}]
 
 
 def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
@@ -512,17 +512,6 @@ def _bias_finding(s, cal, n_fam) -> dict:
             "explanation": (f"the smoother's IMU bias states are {s.statistic / cal.threshold['imu_bias']:.1f}x "
                             f"their calibrated threshold; {PHRASES['imu_bias']}: gyro "
                             f"{_fmt(params['sensors.gyro_bias'])} rad/s, accel {_fmt(params['sensors.accel_bias'])} m/s^2")}
-
-
-def correction_size(c, theta, vehicle: Vehicle) -> float:
-    """How far a fitted candidate moves the nominal model, in units of the smallest error worth
-    finding (`decide.reference_magnitude`): the largest |theta - theta_nominal| / reference over
-    its parameters. A missing effect switched on is measured from its absence (inf: the effect
-    itself is the correction)."""
-    if c.switch_on or not c.n_params:
-        return math.inf
-    ref = decide.reference_magnitude(c, vehicle)
-    return float(np.max(np.abs(np.asarray(theta, float) - np.asarray(c.x0, float)) / np.maximum(ref, 1e-300)))
 
 
 def _split_pair(pf: Fit, a: Fit, b: Fit):
