@@ -387,3 +387,52 @@ def test_the_untestable_current_names_the_parameters_it_covers():
     assert [u["effect"] for u in both] == ["wall_proximity", "current"]
     assert both[1]["parameters"] == [f"environment.current[{i}]" for i in range(3)]
     assert both[1]["reason"].endswith("; vertical: Cramer-Rao sd 3x")
+
+
+def test_a_few_seconds_of_motion_capture_do_not_cover_the_recording():
+    """Motion capture for 3 s of 60 would be held over the other 57 s as a vehicle standing
+    still: it counts only where it covers 90 % of the grid (replay.mocap_covers)."""
+    import dataclasses
+
+    from ground.recording import MocapStream
+
+    t = np.arange(0.0, 60.0, 0.01)
+    tm = np.arange(0.0, 60.0, 0.01)
+    full = MocapStream(tm, quat_wxyz=np.tile([1.0, 0.0, 0.0, 0.0], (len(tm), 1)), pos_ned_m=np.zeros((len(tm), 3)))
+
+    class Rec:
+        mocap = full
+
+    assert replay.mocap_covers(Rec, t)
+    few = tm < 3.0
+    Rec.mocap = dataclasses.replace(full, time_s=tm[few], pos_ned_m=full.pos_ned_m[few], quat_wxyz=full.quat_wxyz[few])
+    assert not replay.mocap_covers(Rec, t)
+    gappy = (tm % 10.0) < 9.5  # 0.5 s dropouts every 10 s: 95 % covered (a 0.05 s hold on each side)
+    Rec.mocap = dataclasses.replace(full, time_s=tm[gappy], pos_ned_m=full.pos_ned_m[gappy], quat_wxyz=full.quat_wxyz[gappy])
+    assert replay.mocap_covers(Rec, t)
+    Rec.mocap = None
+    assert not replay.mocap_covers(Rec, t)
+
+
+def test_a_well_determined_correction_is_not_cut_by_its_point_estimate():
+    """0.41 of the 0.05 m/s worth finding, sd 0.003 m/s: with 2 sd it may be 0.53 (kept); the
+    same estimate with no sd given stays 0.41 (cut)."""
+    vert = next(c for c in core.candidates_for(V, over_ground=False) if c.effect == "current")
+    assert decide.correction_size(vert, [0.0205], V) == pytest.approx(0.41)
+    assert decide.correction_size(vert, [0.0205], V, np.array([0.003])) == pytest.approx(0.53)
+
+
+def test_nothing_testable_is_not_within_its_noise():
+    from ground.diagnose.cli import summary_text
+
+    nan = float("nan")
+    rest = {"fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}}, "method": "shooting"},
+            "mismatch": {"windows": []}}
+    none = dict(rest, findings=[], untestable=[{"effect": "buoyancy", "reason": "x"}],
+                candidates=[{"effect": "buoyancy", "testable": False}])
+    assert summary_text(none).startswith("no finding: this recording cannot test any candidate")
+    some = dict(none, candidates=[{"effect": "buoyancy", "testable": True}])
+    assert summary_text(some).startswith("no finding: the nominal model explains the recording within its noise")
+    short = dict(rest, findings=[], untestable=[{"effect": "buoyancy", "reason": "x"}],
+                 fit=dict(rest["fit"], method="none: too little data"))
+    assert summary_text(short).startswith("no finding: this recording cannot test any candidate")

@@ -45,7 +45,8 @@ PHRASES = {
     "azimuth_transient": "follows the joint rates through a band-pass (seed 004 transients)",
     "surface_proximity": "appears only near the free surface (buoyancy and added mass fall)",
     "wall_proximity": "appears near the floor with heave acceleration (gap effect)",
-    "current": "follows heading like a steady water velocity (vertical only: a steady drift in depth)",
+    "current": "follows heading like a steady water velocity",
+    "current (vertical)": "is a steady drift in depth (the vertical current alone: nothing measures position)",
     "added_mass": "follows the acceleration",
     "linear_damping": "follows the velocity",
     "quadratic_damping": "follows the velocity squared",
@@ -147,7 +148,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     ev_fit = SegmentedEvaluator(evs)
     res0_fit = ev_fit.residual(ev_fit.base)
     split_fit = locate.make_split([e.traj0 for e in evs], [locate.noise_realisation(e, e.residual(e.base)) for e in evs])
-    over_ground = traj.has_mocap  # a position measurement: the only one that sees a horizontal current
+    # a position measurement over every fitting window: the only one that sees a horizontal current
+    over_ground = all(e.traj0.has_mocap for e in evs)
     cands = candidates_for(vehicle, over_ground)
     families = [c.effect for c in cands]
     _say(progress, f"scoring {len(cands)} candidates on {len(recs_w)} window(s) of {recs_w[0].duration_s:.0f} s")
@@ -192,8 +194,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             c = c.subset(s.keep)
         x0 = tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params else None
         f = fit(ev_fit, c, split_fit, res0_fit, x0=x0)
-        size = decide.correction_size(c, f.theta, vehicle)
-        _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}, correction {size:.2f}x the smallest worth finding")
+        size = decide.correction_size(c, f.theta, vehicle, decide.calibrated_sd(s, cal))
+        _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f}, correction (+2 sd) {size:.2f}x the smallest worth finding")
         if f.delta_holdout > 0 and size >= decide.HALF_WORTH_FINDING:  # decide.correction_size
             single.append(f)
     # rank by both kinds of evidence at once: the disturbance regression's held-out drop (which
@@ -218,7 +220,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 continue
             pc = combine(best.candidate, other.candidate)
             pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(best.theta) + tuple(other.theta))
-            if decide.correction_size(other.candidate, pf.theta[best.candidate.n_params:], vehicle) < decide.HALF_WORTH_FINDING:
+            if decide.correction_size(other.candidate, pf.theta[best.candidate.n_params:], vehicle,
+                                      decide.calibrated_sd(by_effect[other.candidate.effect], cal)) < decide.HALF_WORTH_FINDING:
                 continue
             if pf.delta_holdout - best.delta_holdout > SECOND_MIN_GAIN * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
@@ -547,7 +550,8 @@ def _finding(f: Fit, vehicle: Vehicle, score, cal, n_fam: int) -> dict:
         ptxt = ", ".join(f"{k} = {_fmt(v)}" for k, v in params.items() if not k.endswith(".enabled"))
     verb = "adding" if c.kind == "missing" else "correcting"
     what = c.effect.replace("_", " ")
-    explanation = (f"{' and '.join(axes) or 'the'} residual {PHRASES.get(c.effect, '')}; {verb} {what}"
+    phrase = PHRASES["current (vertical)"] if c.effect == "current" and c.n_params == 1 else PHRASES.get(c.effect, "")
+    explanation = (f"{' and '.join(axes) or 'the'} residual {phrase}; {verb} {what}"
                    + (f" with {ptxt}" if ptxt else "")
                    + f" explains {100 * explained:.0f} % of it on held-out data")
     out = {"effect": c.public, "kind": c.kind, "confidence": None, "parameters": params,

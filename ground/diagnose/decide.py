@@ -260,16 +260,21 @@ def calibrated_sd(score: Score, cal: Calibration) -> np.ndarray:
     return crb if boot is None or np.shape(boot) != np.shape(crb) else np.maximum(crb, boot)
 
 
-def correction_size(cand, theta, vehicle) -> float:
-    """How far a fitted candidate moves the nominal model, in units of the smallest error worth
-    finding: the largest |theta - theta_nominal| / reference_magnitude over its parameters. A
-    missing effect switched on is measured from its absence (inf: the effect is the correction).
-    Below HALF_WORTH_FINDING a fit is no finding however significant (eval 526, a control, had
-    the transient's gain named 0.4 % off nominal at a calibrated confidence of 0.96)."""
+def correction_size(cand, theta, vehicle, sd=None) -> float:
+    """How far a fitted candidate may move the nominal model, in units of the smallest error
+    worth finding: the largest (|theta - theta_nominal| + 2 sd) / reference_magnitude over its
+    parameters (sd: the calibrated standard deviation, 0 when not given), so a fit biased low
+    but well determined is not cut. A missing effect switched on is measured from its absence
+    (inf: the effect is the correction). Below HALF_WORTH_FINDING a fit is no finding however
+    significant (eval 526, a control, had the transient's gain named 0.4 % off nominal at a
+    calibrated confidence of 0.96)."""
     if cand.switch_on or not cand.n_params:
         return math.inf
     ref = reference_magnitude(cand, vehicle)
-    return float(np.max(np.abs(np.asarray(theta, float) - np.asarray(cand.x0, float)) / np.maximum(ref, 1e-300)))
+    d = np.abs(np.asarray(theta, float) - np.asarray(cand.x0, float))
+    if sd is not None and np.shape(sd) == d.shape:
+        d = d + 2.0 * np.nan_to_num(np.asarray(sd, float), nan=0.0, posinf=0.0)
+    return float(np.max(d / np.maximum(ref, 1e-300)))
 
 
 def testable(score: Score, cal: Calibration) -> bool:

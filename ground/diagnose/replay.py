@@ -208,6 +208,25 @@ def flown_commands(rec, vehicle: Vehicle) -> np.ndarray:
     return cmd if signs is None else model.faulty_command(vehicle, cmd, signs)
 
 
+MOCAP_COVERAGE = 0.9  # motion capture counts when it covers this share of the grid ...
+MOCAP_HOLD_PERIODS = 5  # ... a grid time being covered within this many of its sample periods
+
+
+def mocap_covers(rec, t_grid) -> bool:
+    """Whether motion capture measures the whole stretch: at least MOCAP_COVERAGE of the grid
+    within MOCAP_HOLD_PERIODS sample periods of a motion-capture sample. A few seconds of it
+    would otherwise be held (interpolation) over the rest as a vehicle standing still, and a
+    horizontal current called tested (an adversary's find)."""
+    m = rec.mocap
+    if m is None or len(m.time_s) <= 10:
+        return False
+    tm = np.asarray(m.time_s, float)
+    hold = MOCAP_HOLD_PERIODS * float(np.median(np.diff(tm)))
+    j = np.clip(np.searchsorted(tm, t_grid), 1, len(tm) - 1)
+    near = np.minimum(np.abs(t_grid - tm[j - 1]), np.abs(tm[j] - t_grid))
+    return bool(np.mean(near <= hold) >= MOCAP_COVERAGE)
+
+
 def _euler_to_quat_rows(e):
     r, p, y = e[:, 0] / 2, e[:, 1] / 2, e[:, 2] / 2
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
@@ -296,7 +315,8 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
         e[:, 2] = np.unwrap(e[:, 2])
         euler_raw = _interp(t, rec.attitude.time_s, e)
         q_meas = _euler_to_quat_rows(_interp(t, rec.attitude.time_s - d, e))
-    if rec.mocap is not None and len(rec.mocap.time_s) > 2:
+    has_mocap = mocap_covers(rec, t)  # partial motion capture is not held over the rest
+    if has_mocap:
         qm = _continuous(np.array(rec.mocap.quat_wxyz, float))
         q_meas = _interp(t, rec.mocap.time_s, qm)
         q_meas /= np.linalg.norm(q_meas, axis=1, keepdims=True)
@@ -305,7 +325,6 @@ def reconstruct(rec, vehicle: Vehicle, correction: SensorCorrection | None = Non
             euler_raw[:, 2] = np.unwrap(euler_raw[:, 2])
     R = rotation_rows(quat)
     g_body = env.g * R[:, 2, :]  # R^T [0, 0, g]
-    has_mocap = rec.mocap is not None and len(rec.mocap.time_s) > 10
     kinematic = np.zeros((len(t), 6))
     if q_meas is not None:
         # w = 2 vec(q* (x) q') from the attitude measurement, against the gyro smoothed alike

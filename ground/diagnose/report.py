@@ -20,6 +20,14 @@ from . import replay
 from .candidates import CHANNELS
 
 
+def nothing_testable(rep: dict) -> bool:
+    """Every candidate untestable (too short, too sparse): 'within its noise' would claim a test."""
+    tested = rep.get("candidates")
+    if tested is not None:
+        return bool(tested) and not any(c.get("testable") for c in tested)
+    return bool(rep.get("untestable")) and rep.get("fit", {}).get("method", "").startswith("none")
+
+
 def write_json(report: dict, path) -> None:
     """Strict JSON: a value that could not be computed (NaN, e.g. a signal with no spread or no
     held-out window) is written as null."""
@@ -163,7 +171,7 @@ def _page(out: Path, rep: dict, figs: list) -> Path:
 <p>{rep['recording']['duration_s']:.1f} s; skipped bytes {rep['recording']['skipped_bytes']},
 bad-CRC packets {rep['recording'].get('bad_crc_packets', 0)}.</p>
 <h2>Findings</h2>
-{'<table><tr><th>#</th><th>effect</th><th>kind</th><th>confidence</th><th>evidence</th></tr>' + rows + '</table>' if rows else '<p>No finding: the nominal model explains the recording within its noise.</p>'}
+{'<table><tr><th>#</th><th>effect</th><th>kind</th><th>confidence</th><th>evidence</th></tr>' + rows + '</table>' if rows else ('<p>No finding: this recording cannot test any candidate (below).</p>' if nothing_testable(rep) else '<p>No finding: the nominal model explains the recording within its noise.</p>')}
 {'<h3>Vehicle-file fragment</h3><pre>' + html.escape(fragment_toml(frag)) + '</pre>' if frag else ''}
 <h2>Not testable on this recording</h2>
 {'<table><tr><th>effect</th><th>why</th></tr>' + untest + '</table>' if untest else '<p>every candidate could be tested</p>'}
