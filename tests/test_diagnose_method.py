@@ -422,6 +422,19 @@ def test_a_well_determined_correction_is_not_cut_by_its_point_estimate():
     assert decide.correction_size(vert, [0.0205], V, np.array([0.003])) == pytest.approx(0.53)
 
 
+def test_an_unexcited_axis_does_not_carry_a_correction_over_the_cut():
+    """Added mass, six coefficients: surge 4 % off nominal (0.2 of the 20 % worth finding), sd
+    1 % of nominal there (determined: 0.2 + 2 x 0.05 = 0.3, cut); heave at nominal with sd 30 %
+    (undetermined, above half the reference): its 2 sd would have made the size 3.0."""
+    am = next(c for c in core.candidates_for(V) if c.effect == "added_mass")
+    x0 = np.asarray(am.x0, float)
+    theta = x0 * np.array([1.04, 1, 1, 1, 1, 1])
+    sd = x0 * np.array([0.01, 0.01, 0.30, 0.01, 0.01, 0.01])
+    assert decide.correction_size(am, theta, V, sd) == pytest.approx(0.3)
+    sd[0] = x0[0] * 0.2  # surge's own sd at 100 % of the reference: not determined, no 2 sd
+    assert decide.correction_size(am, theta, V, sd) == pytest.approx(0.2)
+
+
 def test_nothing_testable_is_not_within_its_noise():
     from ground.diagnose.cli import summary_text
 
@@ -436,6 +449,12 @@ def test_nothing_testable_is_not_within_its_noise():
     short = dict(rest, findings=[], untestable=[{"effect": "buoyancy", "reason": "x"}],
                  fit=dict(rest["fit"], method="none: too little data"))
     assert summary_text(short).startswith("no finding: this recording cannot test any candidate")
+    # withheld (the estimator restarted, or too few null draws): the warnings say why, not "noise"
+    diverged = dict(some, mismatch={"windows": [], "disturbance": {"divergences": 2}})
+    assert summary_text(diverged).startswith("no finding named: the recording could not be tested")
+    undrawn = dict(some, calibration={"null_draws": 1})
+    assert summary_text(undrawn).startswith("no finding named: the recording could not be tested")
+    assert summary_text(dict(some, calibration={"null_draws": 8})).startswith("no finding: the nominal model explains")
 
 
 @pytest.mark.slow

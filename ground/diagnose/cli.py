@@ -61,7 +61,7 @@ def run(args) -> int:
 
 
 def summary_text(rep: dict) -> str:
-    from .report import nothing_testable
+    from .report import no_finding_text
 
     lines = []
     if not rep["findings"] and rep.get("rejected"):  # significant, but not shown to fit better
@@ -69,10 +69,8 @@ def summary_text(rep: dict) -> str:
         lines.append(f"no finding named: {', '.join(rep['rejected'])} passed the calibrated test but "
                      f"{'was' if n == 1 else 'were'} withdrawn, the held-out fit not shown to be better than the "
                      "nominal model's")
-    elif not rep["findings"] and nothing_testable(rep):
-        lines.append("no finding: this recording cannot test any candidate (see 'not testable' below)")
     elif not rep["findings"]:
-        lines.append("no finding: the nominal model explains the recording within its noise")
+        lines.append(no_finding_text(rep))
     for i, f in enumerate(rep["findings"]):
         lines.append(f"{i + 1}. {f['effect']} ({f['kind']}, confidence {f['confidence']:.2f}): {f['explanation']}")
         if f.get("std"):

@@ -47,7 +47,7 @@ PHRASES = {
     "surface_proximity": "appears only near the free surface (buoyancy and added mass fall)",
     "wall_proximity": "appears near the floor with heave acceleration (gap effect)",
     "current": "follows heading like a steady water velocity",
-    "current (vertical)": "is a steady drift in depth (the vertical current alone: nothing measures position)",
+    "current (vertical)": "is a steady drift in depth (the vertical current alone: no position measurement covers the recording)",
     "added_mass": "follows the acceleration",
     "linear_damping": "follows the velocity",
     "quadratic_damping": "follows the velocity squared",
@@ -192,7 +192,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # start is the wrong shape (a lag far from its start value), not the effect absent; its
     # nonlinear fit from the start decides
     tangent_failed = sorted((s for s in scores if s.effect not in skip and s.effect != "imu_bias"
-                             and s.statistic > cal.threshold[s.effect] and s.holdout_drop <= 0),
+                             and s.statistic > cal.threshold[s.effect] and s.holdout_drop < 0),
                             key=lambda s: -s.statistic / cal.threshold[s.effect])[:RANK_TANGENT_FAILED]
     single: list[Fit] = []
     for s in pool + tangent_failed:

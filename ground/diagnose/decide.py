@@ -44,7 +44,8 @@ from .candidates import parameter_scale
 ALPHA_FAMILY = 0.01
 ALPHA_RECORDING = 0.05
 HALF_WORTH_FINDING = 0.5  # of `reference_magnitude`: a parameter's sd above it cannot conclude an
-# absence (`testable`), a fitted correction below it is no finding (`correction_size`)
+# absence (`testable`), a fitted correction (plus 2 sd where determined) below it is no finding
+# (`correction_size`)
 DECORRELATE_S = 0.5  # smoothed-disturbance samples this far apart are treated as independent
 
 
@@ -264,7 +265,10 @@ def correction_size(cand, theta, vehicle, sd=None) -> float:
     """How far a fitted candidate may move the nominal model, in units of the smallest error
     worth finding: the largest (|theta - theta_nominal| + 2 sd) / reference_magnitude over its
     parameters (sd: the calibrated standard deviation, 0 when not given), so a fit biased low
-    but well determined is not cut. A missing effect switched on is measured from its absence
+    but well determined is not cut. The 2 sd count only where the parameter is determined (sd at
+    most HALF_WORTH_FINDING of its reference, `testable`'s rule): an unexcited axis of a
+    six-parameter family, fitted back to its start, would otherwise carry any fit over the cut
+    alone (a review's find). A missing effect switched on is measured from its absence
     (inf: the effect is the correction). Below HALF_WORTH_FINDING a fit is no finding however
     significant (eval 526, a control, had the transient's gain named 0.4 % off nominal at a
     calibrated confidence of 0.96)."""
@@ -272,9 +276,11 @@ def correction_size(cand, theta, vehicle, sd=None) -> float:
         return math.inf
     ref = reference_magnitude(cand, vehicle)
     d = np.abs(np.asarray(theta, float) - np.asarray(cand.x0, float))
+    ref = np.maximum(ref, 1e-300)
     if sd is not None and np.shape(sd) == d.shape:
-        d = d + 2.0 * np.nan_to_num(np.asarray(sd, float), nan=0.0, posinf=0.0)
-    return float(np.max(d / np.maximum(ref, 1e-300)))
+        sd = np.nan_to_num(np.asarray(sd, float), nan=np.inf)
+        d = d + np.where(sd <= HALF_WORTH_FINDING * ref, 2.0 * sd, 0.0)
+    return float(np.max(d / ref))
 
 
 def testable(score: Score, cal: Calibration) -> bool:

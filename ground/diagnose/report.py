@@ -28,6 +28,25 @@ def nothing_testable(rep: dict) -> bool:
     return bool(rep.get("untestable")) and rep.get("fit", {}).get("method", "").startswith("none")
 
 
+def findings_withheld(rep: dict) -> bool:
+    """No finding could be named at all (too few null draws to calibrate, or the estimator could
+    not follow the recording): its warnings say why; 'within its noise' would contradict them."""
+    from .core import MIN_DRAWS
+
+    draws = rep.get("calibration", {}).get("null_draws")
+    diverged = rep.get("mismatch", {}).get("disturbance", {}).get("divergences")
+    return (draws is not None and draws < MIN_DRAWS) or bool(diverged)
+
+
+def no_finding_text(rep: dict) -> str:
+    """The one line a report without findings opens with (summary and page alike)."""
+    if findings_withheld(rep):
+        return "no finding named: the recording could not be tested against the nominal model (see the warnings)"
+    if nothing_testable(rep):
+        return "no finding: this recording cannot test any candidate (see 'not testable')"
+    return "no finding: the nominal model explains the recording within its noise"
+
+
 def write_json(report: dict, path) -> None:
     """Strict JSON: a value that could not be computed (NaN, e.g. a signal with no spread or no
     held-out window) is written as null."""
@@ -171,7 +190,7 @@ def _page(out: Path, rep: dict, figs: list) -> Path:
 <p>{rep['recording']['duration_s']:.1f} s; skipped bytes {rep['recording']['skipped_bytes']},
 bad-CRC packets {rep['recording'].get('bad_crc_packets', 0)}.</p>
 <h2>Findings</h2>
-{'<table><tr><th>#</th><th>effect</th><th>kind</th><th>confidence</th><th>evidence</th></tr>' + rows + '</table>' if rows else ('<p>No finding: this recording cannot test any candidate (below).</p>' if nothing_testable(rep) else '<p>No finding: the nominal model explains the recording within its noise.</p>')}
+{'<table><tr><th>#</th><th>effect</th><th>kind</th><th>confidence</th><th>evidence</th></tr>' + rows + '</table>' if rows else '<p>' + html.escape(no_finding_text(rep).capitalize()) + '.</p>'}
 {'<h3>Vehicle-file fragment</h3><pre>' + html.escape(fragment_toml(frag)) + '</pre>' if frag else ''}
 <h2>Not testable on this recording</h2>
 {'<table><tr><th>effect</th><th>why</th></tr>' + untest + '</table>' if untest else '<p>every candidate could be tested</p>'}
