@@ -467,3 +467,19 @@ def test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_named_first(
     assert row["expect"] == ["servo_lag"]
     assert row["named"][:1] == ["servo_lag"], row["named"]
     assert row["nrmse_after"] < row["nrmse_before"]
+
+
+def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
+    from ground.diagnose.cli import summary_text
+    from ground.diagnose.report import _page
+
+    nan = float("nan")
+    base = {"recording": {"source": "r.tlog", "duration_s": 60.0, "skipped_bytes": 0},
+            "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}}, "method": "shooting"},
+            "mismatch": {"windows": []}, "findings": [], "untestable": [{"effect": "buoyancy", "reason": "x"}]}
+    for rep, says in [(dict(base, candidates=[{"effect": "buoyancy", "testable": False}]), "cannot test any candidate"),
+                      (dict(base, candidates=[{"effect": "buoyancy", "testable": True}]), "within its noise"),
+                      (dict(base, candidates=[], mismatch={"windows": [], "disturbance": {"divergences": 1}}),
+                       "could not be tested against the nominal model")]:
+        page = _page(tmp_path, rep, []).read_text()
+        assert says in page and says in summary_text(rep)
