@@ -183,16 +183,15 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     for s in scores:
         _say(progress, f"{s.effect:18s} S = {s.statistic:10.1f}  threshold {cal.threshold[s.effect]:8.1f}"
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")
-    significant = [s for s in scores if s.effect not in skip and s.statistic > cal.threshold[s.effect]
-                   and not (s.holdout_drop <= 0)]  # NaN (imu_bias) passes: it has no residual step
+    above = [s for s in scores if s.effect not in skip and s.statistic > cal.threshold[s.effect]]
+    significant = [s for s in above if not (s.holdout_drop <= 0)]  # NaN (imu_bias) passes: it has no residual step
     # --- the significant force candidates (at most RANK_TOP, by their linear held-out drop) fitted by
     # nonlinear least squares on the training blocks
     pool = sorted((s for s in significant if s.effect != "imu_bias"), key=lambda s: -s.holdout_drop)[:RANK_TOP]
-    # a significant statistic whose linear step fits worse on held-out data: the tangent at the
-    # start is the wrong shape (a lag far from its start value), not the effect absent; its
-    # nonlinear fit from the start decides
-    tangent_failed = sorted((s for s in scores if s.effect not in skip and s.effect != "imu_bias"
-                             and s.statistic > cal.threshold[s.effect] and s.holdout_drop < 0),
+    # above threshold, but the linear step fits worse on held-out data: the tangent at the start
+    # is the wrong shape (a lag far from its start value), not the effect absent; its nonlinear
+    # fit from the start decides
+    tangent_failed = sorted((s for s in above if s.holdout_drop < 0),
                             key=lambda s: -s.statistic / cal.threshold[s.effect])[:RANK_TANGENT_FAILED]
     single: list[Fit] = []
     for s in pool + tangent_failed:
@@ -207,13 +206,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         if f.delta_holdout > 0 and size >= decide.HALF_WORTH_FINDING:  # decide.correction_size
             single.append(f)
     # rank by the nonlinear fit's held-out chi-square drop: the measurements' own evidence, which
-    # sees a lag's or a transient's shape. The disturbance regression's drop (a tangent at the
-    # nominal) ranked them too until eval 646-795: multiplied in, it put added mass first in 14 of
-    # the dev blocks' 57 wrong-first cases (a missing servo lag with S 8-54x its threshold, its
-    # tangent drop negative, its fit's held-out drop 13x added mass's). Ranked by the fit alone,
-    # of 97 re-diagnosed dev cases (57 of them wrong-first misses) the 28 whose first finding
-    # could move gained 19 right first findings and lost one (781: quadratic damping masked by a
-    # motor lag, now named motor lag first); test_a_lag_whose_linear_step_fails_held_out_...
+    # sees a lag's or a transient's shape. Multiplied by the linear (tangent) drop, as until
+    # 2026-11-26, it put added mass at its bound first over a missing servo lag whose fit explained
+    # 13x more (dev case 496, test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_
+    # named_first; the dev evidence for the change is in the README's method section)
     single.sort(key=lambda f: -f.delta_holdout)
     chosen: list[Fit] = []
     final = None

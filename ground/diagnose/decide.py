@@ -274,9 +274,8 @@ def correction_size(cand, theta, vehicle, sd=None) -> float:
     calibrated confidence of 0.96)."""
     if cand.switch_on or not cand.n_params:
         return math.inf
-    ref = reference_magnitude(cand, vehicle)
+    ref = np.maximum(reference_magnitude(cand, vehicle), 1e-300)
     d = np.abs(np.asarray(theta, float) - np.asarray(cand.x0, float))
-    ref = np.maximum(ref, 1e-300)
     if sd is not None and np.shape(sd) == d.shape:
         sd = np.nan_to_num(np.asarray(sd, float), nan=np.inf)
         d = d + np.where(sd <= HALF_WORTH_FINDING * ref, 2.0 * sd, 0.0)
