@@ -455,6 +455,9 @@ def test_nothing_testable_is_not_within_its_noise():
     undrawn = dict(some, calibration={"null_draws": 1})
     assert summary_text(undrawn).startswith("no finding named: the recording could not be tested")
     assert summary_text(dict(some, calibration={"null_draws": 8})).startswith("no finding: the nominal model explains")
+    weak = dict(some, negligible=[{"effect": "added_mass", "explained": 0.015}])
+    assert summary_text(weak).startswith("no finding: the nominal model explains the recording within its noise; "
+                                         "added_mass (1.5 %) passed the calibrated test")
 
 
 @pytest.mark.slow
@@ -467,6 +470,38 @@ def test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_named_first(
     assert row["expect"] == ["servo_lag"]
     assert row["named"][:1] == ["servo_lag"], row["named"]
     assert row["nrmse_after"] < row["nrmse_before"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("index", [846, 1044])
+def test_a_sensor_delay_is_named_first_not_a_servo_lag(tmp_path, index):
+    """Eval 846 (no motion capture, scripted pilot, 92 ms) and 1044 (motion capture, legs, 52 ms),
+    dev data now: both were named servo lag. 846's delay score was below a threshold the null
+    draws had inflated (a secant of a fraction of a sample); 1044's fit stopped at 5 ms on the
+    hump of its training chi-square. With a 50 ms secant and a scanned start (candidates_for),
+    the delay is named first. 846's value is within 15 %; 1044's training chi-square is least
+    near 60-69 ms against the plant's 52, a bias (not understood yet) the
+    README lists, so only its sign and size class are checked there."""
+    row = prove.run_family_case("eval", index, tmp_path)
+    assert row["expect"] == ["sensor_delay"]
+    assert row["named"][:1] == ["sensor_delay"], row["named"]
+    assert row["param_error"] is not None and row["param_error"] < (0.15 if index == 846 else 0.5), row["param_error"]
+    assert row["nrmse_after"] < row["nrmse_before"]
+
+
+@pytest.mark.slow
+def test_a_significant_fit_that_removes_a_sliver_of_the_mismatch_is_no_finding(tmp_path):
+    """Eval 884 (dev data now), a control without motion capture: added mass passed its
+    calibrated test and its fit removed 1.5 % of the held-out excess; it was named. Below
+    core.MIN_EXPLAINED it is listed as negligible, and the summary says why nothing is named."""
+    from ground.diagnose.cli import summary_text
+
+    row = prove.run_family_case("eval", 884, tmp_path)
+    assert row["expect"] == [] and row["named"] == [], row["named"]
+    rep = json.loads(next(tmp_path.rglob("*884*.json")).read_text())
+    weak = {w["effect"]: w["explained"] for w in rep["negligible"]}
+    assert "added_mass" in weak and 0 < weak["added_mass"] < core.MIN_EXPLAINED
+    assert "added_mass (1." in summary_text(rep) and "no finding" in summary_text(rep)
 
 
 def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):

@@ -129,7 +129,7 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                 scale = parameter_scale(theta0, lo, hi)
                 cols = []
                 for j in range(c.n_params):
-                    d = 0.01 * scale[j]
+                    d = c.step or 0.01 * scale[j]  # Candidate.step
                     th = theta0.copy()
                     th[j] = th[j] + d if th[j] + d <= hi[j] else max(th[j] - d, lo[j])
                     cols.append((ev.residual(c.apply(th, ev.base)) - res0) / (th[j] - theta0[j]))
