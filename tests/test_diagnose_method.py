@@ -374,6 +374,22 @@ def test_correction_size_in_units_of_the_smallest_error_worth_finding():
     assert missing.switch_on and decide.correction_size(missing, [0.001], V) == math.inf
 
 
+def test_a_correction_within_one_sd_of_the_nominal_is_within_noise():
+    """Hand computed: a wall gain 0.165 +- 1.66 against 0.375 (z 0.13) is within noise; 0.165
+    +- 0.1 (z 2.1) is not; a current is not while any component stands 1 sd clear; a missing
+    effect switched on has no start value to compare with."""
+    V_wall = V.with_values({"effects.wall_proximity.k_wall": 0.375})
+    cands = {c.effect: c for c in core.candidates_for(V_wall)}
+    wall = cands["wall_proximity"]
+    assert wall.x0 == (0.375,)
+    assert decide.within_noise(wall, [0.165], [1.66])
+    assert not decide.within_noise(wall, [0.165], [0.1])
+    assert not decide.within_noise(cands["current"], [0.0, 0.03, 0.0], [0.1, 0.02, 0.1])
+    assert decide.within_noise(cands["current"], [0.01, 0.01, 0.0], [0.02, 0.02, 0.02])
+    missing = next(c for c in core.candidates_for(V.with_effects(motor_lag=False)) if c.effect == "motor_lag")
+    assert not decide.within_noise(missing, [0.05], [1.0])
+
+
 def test_the_untestable_current_names_the_parameters_it_covers():
     """Horizontal only while the vertical current was tested; all three, with both reasons, when
     the recording could not test the vertical one either; other entries kept."""
@@ -455,9 +471,12 @@ def test_nothing_testable_is_not_within_its_noise():
     undrawn = dict(some, calibration={"null_draws": 1})
     assert summary_text(undrawn).startswith("no finding named: the recording could not be tested")
     assert summary_text(dict(some, calibration={"null_draws": 8})).startswith("no finding: the nominal model explains")
-    weak = dict(some, negligible=[{"effect": "added_mass", "explained": 0.015}])
-    assert summary_text(weak).startswith("no finding: the nominal model explains the recording within its noise; "
-                                         "added_mass (1.5 %) passed the calibrated test")
+    weak = dict(some, negligible=[{"effect": "added_mass", "kind": "misestimated", "explained": 0.015}])
+    assert summary_text(weak).startswith("no finding named: candidates passed the calibrated test but too small to "
+                                         "name: added_mass (its fit removes 1.5 % of the held-out mismatch)")
+    both = dict(weak, rejected=["imu_bias"])
+    assert summary_text(both).startswith("no finding named: imu_bias passed the calibrated test but was withdrawn")
+    assert "; other candidates passed the calibrated test but too small to name: added_mass" in summary_text(both)
 
 
 @pytest.mark.slow
@@ -501,7 +520,7 @@ def test_a_significant_fit_that_removes_a_sliver_of_the_mismatch_is_no_finding(t
     rep = json.loads(next(tmp_path.rglob("*884*.json")).read_text())
     weak = {w["effect"]: w["explained"] for w in rep["negligible"]}
     assert "added_mass" in weak and 0 < weak["added_mass"] < core.MIN_EXPLAINED
-    assert "added_mass (1." in summary_text(rep) and "no finding" in summary_text(rep)
+    assert "added_mass (its fit removes 1." in summary_text(rep) and "no finding" in summary_text(rep)
 
 
 def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
@@ -514,6 +533,9 @@ def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
             "mismatch": {"windows": []}, "findings": [], "untestable": [{"effect": "buoyancy", "reason": "x"}]}
     for rep, says in [(dict(base, candidates=[{"effect": "buoyancy", "testable": False}]), "cannot test any candidate"),
                       (dict(base, candidates=[{"effect": "buoyancy", "testable": True}]), "within its noise"),
+                      (dict(base, candidates=[], rejected=["imu_bias"]), "imu_bias passed the calibrated test but was withdrawn"),
+                      (dict(base, candidates=[], negligible=[{"effect": "current", "explained": 0.02, "why": "w"}]),
+                       "too small to name: current (w)"),
                       (dict(base, candidates=[], mismatch={"windows": [], "disturbance": {"divergences": 1}}),
                        "could not be tested against the nominal model")]:
         page = _page(tmp_path, rep, []).read_text()

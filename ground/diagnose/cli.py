@@ -61,16 +61,9 @@ def run(args) -> int:
 
 
 def summary_text(rep: dict) -> str:
-    from .report import negligible_text, no_finding_text
+    from .report import no_finding_text
 
-    lines = []
-    if not rep["findings"] and rep.get("rejected"):  # significant, but not shown to fit better
-        n = len(rep["rejected"])
-        lines.append(f"no finding named: {', '.join(rep['rejected'])} passed the calibrated test but "
-                     f"{'was' if n == 1 else 'were'} withdrawn, the held-out fit not shown to be better than the "
-                     "nominal model's" + negligible_text(rep))
-    elif not rep["findings"]:
-        lines.append(no_finding_text(rep))
+    lines = [] if rep["findings"] else [no_finding_text(rep)]
     for i, f in enumerate(rep["findings"]):
         lines.append(f"{i + 1}. {f['effect']} ({f['kind']}, confidence {f['confidence']:.2f}): {f['explanation']}")
         if f.get("std"):

@@ -199,16 +199,25 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     tangent_failed = sorted((s for s in above if s.holdout_drop < 0),
                             key=lambda s: -s.statistic / cal.threshold[s.effect])[:RANK_TANGENT_FAILED]
     single: list[Fit] = []
+    worse: list[str] = []  # significant, but the fit is not better held out: reported as rejected
+    small: list[tuple] = []  # significant, but too small to name: (fit, why), reported as negligible
     for s in pool + tangent_failed:
         c = next(c for c in cands if c.effect == s.effect)
         if s.keep is not None:  # a one-at-a-time family: the part its test chose
             c = c.subset(s.keep)
         x0 = tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params and s.holdout_drop > 0 else None
         f = fit(ev_fit, c, split_fit, res0_fit, x0=x0)
-        size = decide.correction_size(c, f.theta, vehicle, decide.calibrated_sd(s, cal))
+        sd = decide.calibrated_sd(s, cal)
+        size = decide.correction_size(c, f.theta, vehicle, sd)
         _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f} (its linear step: {s.holdout_drop:.1f}), "
                        f"correction (+2 sd) {size:.2f}x the smallest worth finding")
-        if f.delta_holdout > 0 and size >= decide.HALF_WORTH_FINDING:  # decide.correction_size
+        if not f.delta_holdout > 0:
+            worse.append(c.effect)
+        elif size < decide.HALF_WORTH_FINDING:  # decide.correction_size
+            small.append((f, "its correction is under half the smallest error worth finding"))
+        elif decide.within_noise(c, f.theta, sd):
+            small.append((f, "its correction is within one sd of the nominal value"))
+        else:
             single.append(f)
     # rank by the nonlinear fit's held-out chi-square drop: the measurements' own evidence, which
     # sees a lag's or a transient's shape. Multiplied by the linear (tangent) drop, as until
@@ -216,11 +225,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # 13x more (dev case 496, test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_
     # named_first; the dev evidence for the change is in the README's method section)
     single.sort(key=lambda f: -f.delta_holdout)
-    negligible = [f for f in single if f.explained < MIN_EXPLAINED and f.candidate.effect not in LOCAL_EFFECTS]
-    for f in negligible:
-        _say(progress, f"{f.candidate.effect} not named: its fit removes {100 * f.explained:.1f} % of the held-out "
-                       f"excess (below {100 * MIN_EXPLAINED:.0f} %)")
-    single = [f for f in single if all(f is not g for g in negligible)]  # (Fit holds arrays: no ==)
+    sliver = [f for f in single if f.explained < MIN_EXPLAINED and f.candidate.effect not in LOCAL_EFFECTS]
+    small += [(f, f"its fit removes {100 * f.explained:.1f} % of the held-out mismatch") for f in sliver]
+    single = [f for f in single if all(f is not g for g in sliver)]  # (Fit holds arrays: no ==)
+    for f, why in small:
+        _say(progress, f"{f.candidate.effect} not named: {why}")
     chosen: list[Fit] = []
     final = None
     if single:
@@ -326,7 +335,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         findings.append(entry)  # after the calibrated findings (it is not calibrated)
     public = {c.effect: c.public for c in cands}
     kinds = {c.effect: c.kind for c in cands}
-    rejected = list(dict.fromkeys(public.get(e, e) for e in rejected))
+    named = {f.candidate.effect for f in chosen}
+    rejected = list(dict.fromkeys(public.get(e, e) for e in rejected + [e for e in worse if e not in named]))
     est = traj.estimate
     warnings = []
     if vehicle.fixed:  # what the motor directions read from the log cannot say
@@ -369,8 +379,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         **({"reversed_by_autopilot": reversed_units} if reversed_units else {}),
         "untestable": untestable,
         "rejected": rejected,
-        "negligible": [{"effect": public.get(f.candidate.effect, f.candidate.effect),
-                        "explained": round(f.explained, 4)} for f in negligible],
+        "negligible": [{"effect": f.candidate.public, "kind": f.candidate.kind, "explained": round(f.explained, 4),
+                        "why": why} for f, why in small],
         "fit": {
             "holdout": {
                 "before": {"total": round(shots["total_before"], 4),

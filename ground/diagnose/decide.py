@@ -282,6 +282,18 @@ def correction_size(cand, theta, vehicle, sd=None) -> float:
     return float(np.max(d / ref))
 
 
+def within_noise(cand, theta, sd) -> bool:
+    """True when every fitted parameter lies within one calibrated sd of its start value: the
+    recording cannot tell the correction from the nominal model, however significant the family
+    (an adversary's perfect-model recording at ArduSub rates had a wall gain named 0.165 +- 1.66
+    against its nominal 0.375, confidence 1.00). A missing effect switched on has no start value
+    to compare with (False)."""
+    if cand.switch_on or not cand.n_params or sd is None or np.shape(sd) != np.shape(theta):
+        return False
+    z = np.abs(np.asarray(theta, float) - np.asarray(cand.x0, float)) / np.maximum(np.asarray(sd, float), 1e-300)
+    return bool(np.all(np.nan_to_num(z, nan=0.0) < 1.0))
+
+
 def testable(score: Score, cal: Calibration) -> bool:
     """False when the family is not significant and even its best-determined parameter's sd
     exceeds half its reference magnitude: its absence cannot be concluded."""

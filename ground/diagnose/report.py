@@ -42,16 +42,24 @@ def no_finding_text(rep: dict) -> str:
     """The one line a report without findings opens with (summary and page alike)."""
     if findings_withheld(rep):
         return "no finding named: the recording could not be tested against the nominal model (see the warnings)"
+    rejected, weak = rep.get("rejected") or [], rep.get("negligible") or []
+    if rejected:  # significant, but not shown to fit better
+        line = (f"no finding named: {', '.join(rejected)} passed the calibrated test but "
+                f"{'was' if len(rejected) == 1 else 'were'} withdrawn, the held-out fit not shown to be better than "
+                "the nominal model's")
+        return line + ("; other candidates " + _negligible(weak) if weak else "")
+    if weak:  # significant, but too small to name (core.py: MIN_EXPLAINED, correction size, one sd)
+        return "no finding named: candidates " + _negligible(weak)
     if nothing_testable(rep):
         return "no finding: this recording cannot test any candidate (see 'not testable')"
-    return "no finding: the nominal model explains the recording within its noise" + negligible_text(rep)
+    return "no finding: the nominal model explains the recording within its noise"
 
 
-def negligible_text(rep: dict) -> str:
-    """'; added_mass (1.5 %) passed ...' when significant fits were too small to name (core.MIN_EXPLAINED)."""
-    weak = rep.get("negligible") or []
-    return "" if not weak else "; " + ", ".join(f"{w['effect']} ({100 * w['explained']:.1f} %)" for w in weak) + (
-        " passed the calibrated test, but a fit removing so little of the held-out mismatch is no finding")
+def _negligible(weak: list) -> str:
+    """'passed the calibrated test but too small to name: added_mass (its fit removes 1.5 % ...)'."""
+    def why(w):
+        return w.get("why") or f"its fit removes {100 * w['explained']:.1f} % of the held-out mismatch"
+    return "passed the calibrated test but too small to name: " + "; ".join(f"{w['effect']} ({why(w)})" for w in weak)
 
 
 def write_json(report: dict, path) -> None:
