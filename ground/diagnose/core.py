@@ -249,6 +249,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             if decide.correction_size(other.candidate, pf.theta[best.candidate.n_params:], vehicle,
                                       decide.calibrated_sd(by_effect[other.candidate.effect], cal)) < decide.HALF_WORTH_FINDING:
                 continue
+            if other.candidate.effect not in LOCAL_EFFECTS and pf.explained - best.explained < MIN_EXPLAINED:
+                continue  # its share of the pair is a sliver (MIN_EXPLAINED, as for a first finding)
             if pf.delta_holdout - best.delta_holdout > SECOND_MIN_GAIN * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
                 best_pair = (pf, other)
