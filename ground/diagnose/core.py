@@ -38,8 +38,8 @@ Z_GATE = 2.5  # the data-driven `unknown` term (not calibrated by the null draws
 # held-out chi-square by 2 Z_GATE of its sd, and pass the never-worse gate
 MIN_EXPLAINED = 0.04  # a fit removing less of the held-out excess than this is no finding, however
 # significant (LOCAL_EFFECTS aside: they act on a few seconds of a recording). Dev blocks 116-315
-# and 346-1095, 430 first findings: outside the local effects, those below 4 % were three controls
-# (247, 526, 884: 0.7-3.2 %) and one wrong finding (664), and every right one explained 5 % or more
+# and 346-1095, 430 first findings: outside the local effects, those below 4 % were four controls
+# (247, 526, 884, 943: 0.7-4.0 %) and one wrong finding (664), and every right one explained 5 % or more
 LOCAL_EFFECTS = ("wall_proximity", "surface_proximity")  # right wall findings explained 0.4-10 %
 UNKNOWN_MIN_EXPLAINED = 0.5  # ... and explain at least this share of the held-out excess (its
 # `confidence` is that share): eval block 216-315 named terms explaining 6-21 %, one on a control
