@@ -269,7 +269,12 @@ def test_repro_buoyancy_without_motion_capture_is_buoyancy(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["small.tlog", "small.BIN", "2023-04-18_11-03-34.tlog"])
 def test_real_ardusub_logs_give_a_report(name, tmp_path, capsys):
-    """Real BlueROV2 logs at 2-25 Hz read with asr4: a report, weak and honest, never a traceback."""
+    """Real BlueROV2 logs at 2-25 Hz read with asr4: a report, weak and honest, never a traceback.
+    One that names nothing while candidates stand above their thresholds must not say "within its
+    noise" (2023-04-18 did, buoyancy 10x its threshold: fits that were worse held out or too small
+    were dropped silently; an adversary's find)."""
+    from ground.diagnose.cli import summary_text
+
     code = main(["diagnose", str(shared_file(ARDUSUB / name)), "--json", str(tmp_path / "r.json"), "--quiet"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
@@ -277,6 +282,9 @@ def test_real_ardusub_logs_give_a_report(name, tmp_path, capsys):
     rep = json.loads((tmp_path / "r.json").read_text())
     assert rep["untestable"], "a 2-25 Hz log cannot test every candidate"
     assert all(u["reason"] for u in rep["untestable"])
+    if not rep["findings"] and any(c["testable"] and c["statistic"] > c["threshold"] for c in rep["candidates"]):
+        assert "within its noise" not in summary_text(rep)
+        assert rep["rejected"] or rep["negligible"]
 
 
 @pytest.mark.parametrize("effect, says", [
