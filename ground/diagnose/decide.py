@@ -102,8 +102,8 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
 
     dist, sd = ev.disturbance()
     M0 = model.mass_matrix(model.pack_params(vehicle), 1.0, 1.0)  # d enters through M0^-1 (estimate.py)
-    step = max(1, int(round(DECORRELATE_S / ((split.train[1] - split.train[0]) * ev_dt(ev)))) if len(split.train) > 1 else 1)
-    tr, ho = split.train[::step], split.holdout[::step]
+    stride = max(1, int(round(DECORRELATE_S / ((split.train[1] - split.train[0]) * ev_dt(ev)))) if len(split.train) > 1 else 1)
+    tr, ho = split.train[::stride], split.holdout[::stride]
     w = 1.0 / np.maximum(sd, 1e-9)
     y_tr = np.nan_to_num((dist[tr] * w[tr]).ravel())
     y_ho = np.nan_to_num((dist[ho] * w[ho]).ravel())
