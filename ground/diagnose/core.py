@@ -211,12 +211,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         size = decide.correction_size(c, f.theta, vehicle, sd)
         _say(progress, f"fit {c.effect:18s} held-out chi2 -{f.delta_holdout:9.1f} (its linear step: {s.holdout_drop:.1f}), "
                        f"correction (+2 sd) {size:.2f}x the smallest worth finding")
+        why = _too_small(c, f.theta, sd, f.explained, vehicle)
         if not f.delta_holdout > 0:
             worse.append(c.effect)
-        elif size < decide.HALF_WORTH_FINDING:  # decide.correction_size
-            small.append((f, "its correction is under half the smallest error worth finding"))
-        elif decide.within_noise(c, f.theta, sd):
-            small.append((f, "its correction is within one sd of the nominal value"))
+        elif why:
+            small.append((f, why))
         else:
             single.append(f)
     # rank by the nonlinear fit's held-out chi-square drop: the measurements' own evidence, which
@@ -225,9 +224,6 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # 13x more (dev case 496, test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_
     # named_first; the dev evidence for the change is in the README's method section)
     single.sort(key=lambda f: -f.delta_holdout)
-    sliver = [f for f in single if f.explained < MIN_EXPLAINED and f.candidate.effect not in LOCAL_EFFECTS]
-    small += [(f, f"its fit removes {100 * f.explained:.1f} % of the held-out mismatch") for f in sliver]
-    single = [f for f in single if all(f is not g for g in sliver)]  # (Fit holds arrays: no ==)
     for f, why in small:
         _say(progress, f"{f.candidate.effect} not named: {why}")
     chosen: list[Fit] = []
@@ -246,11 +242,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 continue
             pc = combine(best.candidate, other.candidate)
             pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(best.theta) + tuple(other.theta))
-            if decide.correction_size(other.candidate, pf.theta[best.candidate.n_params:], vehicle,
-                                      decide.calibrated_sd(by_effect[other.candidate.effect], cal)) < decide.HALF_WORTH_FINDING:
-                continue
-            if other.candidate.effect not in LOCAL_EFFECTS and pf.explained - best.explained < MIN_EXPLAINED:
-                continue  # its share of the pair is a sliver (MIN_EXPLAINED, as for a first finding)
+            if _too_small(other.candidate, pf.theta[best.candidate.n_params:],
+                          decide.calibrated_sd(by_effect[other.candidate.effect], cal), pf.explained - best.explained,
+                          vehicle):
+                continue  # the same rules as for a first finding, on its share of the pair
             if pf.delta_holdout - best.delta_holdout > SECOND_MIN_GAIN * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
                 best_pair = (pf, other)
@@ -415,6 +410,19 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         "elapsed_s": round(time.perf_counter() - t_start, 2),
     }
     return Diagnosis(report, traj, res0, res1, windows, fits, shots, mdiag)
+
+
+def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle) -> str:
+    """Why a significant, better-fitting correction is still no finding ('' when it is one): under
+    half the smallest error worth finding (decide.correction_size), within one sd of its nominal
+    value (decide.within_noise), or removing under MIN_EXPLAINED of the held-out excess."""
+    if decide.correction_size(cand, theta, vehicle, sd) < decide.HALF_WORTH_FINDING:
+        return "its correction is under half the smallest error worth finding"
+    if decide.within_noise(cand, theta, sd):
+        return "its correction is within one sd of the nominal value"
+    if explained < MIN_EXPLAINED and cand.effect not in LOCAL_EFFECTS:
+        return f"its fit removes {100 * explained:.1f} % of the held-out mismatch"
+    return ""
 
 
 def lead_seconds(vehicle: Vehicle) -> float:
