@@ -768,6 +768,23 @@ def test_sensor_delay_shifts_every_stream(vehicle):
     assert a.pressure[0].press_abs_pa != a.pressure[10].press_abs_pa
 
 
+def test_a_delay_between_sampling_instants_is_handed_out_on_time(vehicle):
+    """33 ms is not a multiple of any stream's period (10 and 20 ms): each sample arrives 33 ms
+    after it was taken, not at the next sampling instant (which stamped it 40 ms late, and made
+    the benchmark's truth a different delay from the one the plant claimed)."""
+    late = vehicle.with_values({"sensors.delay": 0.033})
+    a = Plant(vehicle, seed=3).advance(1.0)
+    b = Plant(late, seed=3).advance(1.0)
+    for stream in ("imu", "pressure", "attitude"):
+        sa, sb = getattr(a, stream), getattr(b, stream)
+        assert len(sb) >= len(sa) - 4
+        for x, y in zip(sa, sb):
+            assert y.time_s == pytest.approx(x.time_s + 0.033, abs=1e-9)
+            fields = [f for f in x.__dataclass_fields__ if f != "time_s"]
+            assert [getattr(x, f) for f in fields] == [getattr(y, f) for f in fields]
+    assert a.truth == b.truth
+
+
 def test_plant_is_deterministic_per_seed(vehicle):
     u = command(n=(60, 40, 60, 40), alpha=(0.3, -0.3, 0.3, -0.3))
     one = Plant(vehicle, seed=11, command=u).advance(0.5)
