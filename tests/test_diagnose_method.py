@@ -4,6 +4,7 @@ interval, and the recordings of the issue's repros."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -14,7 +15,7 @@ from scipy.stats import binomtest, chi2
 from conftest import ARDUSUB, shared_file
 from ground import prove
 from ground.cli import main
-from ground.diagnose import core, decide, estimate, null, replay
+from ground.diagnose import candidates, core, decide, estimate, null, replay
 from ground.diagnose.candidates import Evaluator
 from ground.recording import read_recording
 from hil.plant import Plant
@@ -78,6 +79,21 @@ def test_disturbance_is_the_missing_buoyancy_force(tmp_path_factory, mocap):
     inner = slice(500, -500)
     assert np.mean(est.disturbance[inner, 2]) == pytest.approx(force, rel=0.1)
     assert abs(np.mean(est.x[inner, estimate.I_BA + 2])) < 0.02  # not taken for an accelerometer bias
+
+
+def test_held_commands_are_the_recorded_commands_averaged_over_each_grid_step(plain):
+    """Hand computed: servo outputs every 10 ms on a 20 ms grid; each grid step holds the mean of
+    the two commands inside it (not the first), before the first record the first command."""
+    from ground.recording import ServoStream
+
+    ts = plain.servo.time_s[:6]
+    rec = dataclasses.replace(plain, servo=ServoStream(ts, plain.servo.pwm_us[:6]))
+    cmd = replay.flown_commands(rec, V)
+    d = float(ts[1] - ts[0])
+    got = replay.held_commands(rec, V, np.array([ts[0] - 2 * d, ts[0], ts[2]]))
+    np.testing.assert_allclose(got[0], cmd[0], atol=1e-12)
+    np.testing.assert_allclose(got[1], 0.5 * (cmd[0] + cmd[1]), atol=1e-9)
+    np.testing.assert_allclose(got[2], 0.5 * (cmd[2] + cmd[3]), atol=1e-9)
 
 
 def test_chunked_smoother_equals_one_pass(plain, monkeypatch):
@@ -382,6 +398,49 @@ def test_correction_size_in_units_of_the_smallest_error_worth_finding():
     assert missing.switch_on and decide.correction_size(missing, [0.001], V) == math.inf
 
 
+def test_sandwich_sd_hand_computed_for_white_residuals():
+    """Lag 0, the mean of r (J = -1 on one channel): A = T (+ the prior), B = sum r^2, so the sd
+    is sqrt(sum r^2) / (T + prior), the textbook standard error of a mean."""
+    r = np.array([0.5, -1.0, 2.0, 0.0, 1.5])
+    J = -np.ones((5, 1, 1))
+    assert candidates.sandwich_sd(J, r[:, None], np.zeros(1), 0)[0] == pytest.approx(math.sqrt(7.5) / 5)
+    assert candidates.sandwich_sd(J, r[:, None], np.array([3.0]), 0)[0] == pytest.approx(math.sqrt(7.5) / 8)
+
+
+def test_sandwich_sd_matches_the_spread_of_estimates_under_coloured_residuals():
+    """A second, independent route: the mean of AR(1) residuals (rho 0.8) estimated 300 times.
+    The spread of the estimates is sqrt((1 + rho) / (1 - rho)) = 3x the white-noise bound; the
+    sandwich with a 50-sample lag window agrees with the spread within 15 %, the white bound
+    (lag 0) is a third of it."""
+    rng = np.random.default_rng(7)
+    T, rho, reps = 2000, 0.8, 300
+    e = rng.normal(size=(reps, T))
+    for t in range(1, T):
+        e[:, t] += rho * e[:, t - 1]
+    means = e.mean(axis=1)
+    J = -np.ones((T, 1, 1))
+    hac = [candidates.sandwich_sd(J, (x - x.mean())[:, None], np.zeros(1), 50)[0] for x in e[:40]]
+    white = [candidates.sandwich_sd(J, (x - x.mean())[:, None], np.zeros(1), 0)[0] for x in e[:40]]
+    spread = float(np.std(means, ddof=1))
+    assert np.mean(hac) == pytest.approx(spread, rel=0.15)
+    assert np.mean(white) < 0.45 * spread
+
+
+def test_a_scanned_parameter_is_refined_between_its_scan_points():
+    """candidates._scan_fit on a known training chi-square: least at 55 ms, piecewise linear
+    between 10 ms samples (what a re-timed sampled stream gives); the scan brackets it between
+    40 and 70 ms and the bounded search lands within SCAN_TOL."""
+    truth = 0.055
+    grid = np.arange(0.0, 0.51, 0.01)
+    f = lambda th: float(np.interp(th[0], grid, (grid - truth) ** 2 * 1e4 + 50.0))  # noqa: E731
+    lo, hi = np.array([0.0]), np.array([0.5])
+    got = candidates._scan_fit(f, np.array([0.0]), lo, hi, (0.0, 0.01, 0.02, 0.04, 0.07, 0.1, 0.2))[0]
+    assert abs(got - truth) <= candidates.SCAN_TOL + 0.005  # the interpolated minimum is 50 or 60 ms
+    smooth = lambda th: float((th[0] - truth) ** 2)  # noqa: E731
+    assert candidates._scan_fit(smooth, np.array([0.0]), lo, hi, (0.0, 0.04, 0.07))[0] == pytest.approx(
+        truth, abs=candidates.SCAN_TOL)
+
+
 def test_a_correction_within_one_sd_of_the_nominal_is_within_noise():
     """Hand computed: a wall gain 0.165 +- 1.66 against 0.375 (z 0.13) is within noise; 0.165
     +- 0.1 (z 2.1) is not; a current is not while any component stands 1 sd clear; a missing
@@ -500,19 +559,20 @@ def test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_named_first(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("index", [846, 1044])
+@pytest.mark.parametrize("index", [846, 1134])
 def test_a_sensor_delay_is_named_first_not_a_servo_lag(tmp_path, index):
-    """Eval 846 (no motion capture, scripted pilot, 92 ms) and 1044 (motion capture, legs, 52 ms),
-    dev data now: both were named servo lag. 846's delay score was below a threshold the null
-    draws had inflated (a secant of a fraction of a sample); 1044's fit stopped at 5 ms on the
-    hump of its training chi-square. With a 50 ms secant and a scanned start (candidates_for),
-    the delay is named first. 846's value is within 15 %; 1044's training chi-square is least
-    near 60-69 ms against the plant's 52, a bias (not understood yet) the
-    README lists, so only its sign and size class are checked there."""
+    """Eval 846 (no motion capture, scripted pilot, 100 Hz, 92 ms) and 1134 (motion capture,
+    scripted, 50 Hz, 55 ms), dev data now. 846 was named servo lag: its delay score was below a
+    threshold the null draws had inflated (a secant of a fraction of a sample). 1134's delay
+    was fitted 23 % off: least squares with a sub-sample difference step, and commands held from
+    the start of each 20 ms grid step, stale by an amount that depends on the IMU's phase. With a
+    50 ms secant, a scan refined by a bounded search (candidates._scan_fit) and the commands
+    averaged over each step (replay.held_commands), the delay is named first and within 15 %."""
     row = prove.run_family_case("eval", index, tmp_path)
     assert row["expect"] == ["sensor_delay"]
     assert row["named"][:1] == ["sensor_delay"], row["named"]
-    assert row["param_error"] is not None and row["param_error"] < (0.15 if index == 846 else 0.5), row["param_error"]
+    assert row["param_error"] is not None and row["param_error"] < 0.15, row["param_error"]
+    assert row["within_3sd"], row
     assert row["nrmse_after"] < row["nrmse_before"]
 
 

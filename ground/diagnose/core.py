@@ -561,9 +561,9 @@ def _split_pair(pf: Fit, a: Fit, b: Fit):
     """The two findings of a pair fit: each with its share of the joint parameters."""
     na = a.candidate.n_params
     fa = Fit(a.candidate, pf.theta[:na], pf.chi2_train, pf.chi2_holdout, a.delta_holdout, a.explained,
-             a.bic, a.per_channel, a.residual, a.model)
+             a.bic, a.per_channel, a.residual, a.model, None if pf.sd is None else pf.sd[:na])
     fb = Fit(b.candidate, pf.theta[na:], pf.chi2_train, pf.chi2_holdout, pf.delta_holdout - a.delta_holdout,
-             pf.explained - a.explained, pf.bic - a.bic, pf.per_channel - a.per_channel, pf.residual, pf.model)
+             pf.explained - a.explained, pf.bic - a.bic, pf.per_channel - a.per_channel, pf.residual, pf.model, None if pf.sd is None else pf.sd[na:])
     return fa, fb
 
 
@@ -599,6 +599,8 @@ def _finding(f: Fit, vehicle: Vehicle, score, cal, n_fam: int) -> dict:
            "explained": round(explained, 3), "bic": round(f.bic, 1), "axes": axes}
     if score is not None and c.n_params and score.effect == c.effect:
         sd = decide.calibrated_sd(score, cal)
+        if f.sd is not None and np.shape(f.sd) == np.shape(sd):  # and not below the fit's own,
+            sd = np.maximum(sd, f.sd)  # with its residuals' colour (candidates.sandwich_sd)
         out["std"] = c.parameters(sd, vehicle, deviations=True)
         out["statistic"] = round(score.statistic, 1)
         out["threshold"] = round(cal.threshold[c.effect], 1)

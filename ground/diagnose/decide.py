@@ -39,7 +39,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from onboard.vehicle import VehicleFileError
 
-from .candidates import parameter_scale
+from .candidates import ev_dt, parameter_scale
 
 ALPHA_FAMILY = 0.01
 ALPHA_RECORDING = 0.05
@@ -186,11 +186,6 @@ def joint_gain(a: Score, b: Score) -> tuple[float, float]:
     dth = Ainv @ g
     drop = float(yh @ yh - np.sum((yh - Jh @ dth) ** 2))
     return S - a.statistic, drop - a.holdout_drop
-
-
-def ev_dt(ev) -> float:
-    e = ev.evaluators[0] if hasattr(ev, "evaluators") else ev
-    return e.traj0.dt_s
 
 
 def bias_score(trajs, vehicle) -> Score:
