@@ -608,3 +608,24 @@ def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
                        "could not be tested against the nominal model")]:
         page = _page(tmp_path, rep, []).read_text()
         assert says in page and says in summary_text(rep)
+
+
+def test_a_filter_gone_astray_in_depth_comes_back_to_the_pressure_sensor(plain):
+    """Start the smoother 0.5 m off in depth with a tight initial covariance: every pressure
+    innovation is beyond the 6-sigma gate. Gated forever, the estimate never came back (dev case
+    1195: 6.5 m of drift over 60 s); after GATE_RETRY_S of gated-out innovations the kind is
+    fused ungated until it passes again, so the depth follows the sensor after a few seconds."""
+    rec = plain.between(plain.t_start_s, plain.t_start_s + 20.0)
+    t, dt = replay.grid_for(rec)
+    p = model.pack_params(V)
+    cmd = replay.held_commands(rec, V, t)
+    act = replay.actuator_run_commands(cmd, dt, p, 4)
+    meas = estimate.measurements(rec, V, t)
+    x0 = estimate.initial_state(meas, 0.0)
+    x0[estimate.I_POS + 2] += 0.5
+    est = estimate.smooth(meas, act, cmd, p, x0, estimate.Noise(p0_vel_m_s=1e-3))
+    surf = float(p[model.P_SURF])
+    late = meas.depth_ok & (t > t[0] + 3.0 * estimate.GATE_RETRY_S)
+    err = est.x[late, estimate.I_POS + 2] - surf - meas.depth_m[late]
+    assert est.outliers > 0  # the first innovations were gated out
+    assert np.median(np.abs(err)) < 0.02

@@ -46,7 +46,12 @@ NX = 24
 I_POS, I_ATT, I_NU, I_D, I_BG, I_BA = 0, 3, 6, 12, 18, 21
 CHUNK = 2000
 MAX_SUBSTEP_S = 0.02  # the model is integrated in steps no longer than this between two samples
-GATE_CHI2 = 36.0  # a scalar innovation beyond 6 sigma is an outlier: skipped and counted
+GATE_CHI2 = 36.0  # a scalar innovation beyond 6 sigma is an outlier: skipped and counted ...
+GATE_RETRY_S = 1.0  # ... unless its kind has not passed the gate for this long: then the filter,
+# not the sensor, has gone astray, and the kind is fused ungated until it passes again (ArduPilot's
+# EKF does the same with its innovation-failure timeouts, resetting height to the barometer; dev
+# case 1195: a depth innovation gated once at ArduSub's 10 Hz pressure was never fused again, and
+# the smoothed depth drifted 6.5 m over 60 s)
 
 # Measurement kinds, in the order of `Estimate.innovation_rms`.
 MEAS = ("gyro", "accel", "depth", "attitude", "mocap_pos", "mocap_att")
@@ -202,8 +207,9 @@ def _wrap(a):
 
 
 @njit(cache=True)
-def _scalar_update(x, P, H, z_minus_h, r, is_angle):
-    """One scalar Kalman update (P - P H H^T P / s); returns (nll term, used, normalised v^2)."""
+def _scalar_update(x, P, H, z_minus_h, r, is_angle, gated=True):
+    """One scalar Kalman update (P - P H H^T P / s), skipped beyond the gate when `gated`;
+    returns (nll term, used, normalised v^2)."""
     n = x.shape[0]
     PH = P @ H
     s = 0.0
@@ -212,7 +218,7 @@ def _scalar_update(x, P, H, z_minus_h, r, is_angle):
     s += r
     v = _wrap(z_minus_h) if is_angle else z_minus_h
     z2 = v * v / s
-    if z2 > GATE_CHI2 or not math.isfinite(z2):
+    if not math.isfinite(z2) or (gated and z2 > GATE_CHI2):
         return 0.0, 0, 0.0
     for i in range(n):
         x[i] += PH[i] / s * v
@@ -244,6 +250,8 @@ def _filter(x0, P0, act, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, a
     I = np.eye(NX)
     outliers = 0
     resets = 0
+    since = np.full(6, -1, np.int64)  # step each kind's run of gated-out innovations began (GATE_RETRY_S)
+    retry = int(math.ceil(GATE_RETRY_S / h))
     nsub = max(1, int(math.ceil(h / MAX_SUBSTEP_S - 1e-9)))  # slow IMUs: the model steps finer
     hs = h / nsub
     for k in range(n):
@@ -296,7 +304,12 @@ def _filter(x0, P0, act, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, a
                     H[I_ATT + i] = 1.0
                     v = mocap[k, 3 + i] - x[I_ATT + i]
                     angle = True
-                ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle)
+                ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle,
+                                              since[kind] < 0 or k - since[kind] < retry)
+                if used and z2 <= GATE_CHI2:
+                    since[kind] = -1
+                elif since[kind] < 0:
+                    since[kind] = k
                 l += ll
                 m += used
                 outliers += 1 - used
