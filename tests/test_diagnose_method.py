@@ -426,6 +426,17 @@ def test_sandwich_sd_matches_the_spread_of_estimates_under_coloured_residuals():
     assert np.mean(white) < 0.45 * spread
 
 
+def test_a_pair_with_a_delay_keeps_the_delay_s_resolution():
+    """A delay's residual is piecewise linear between samples: least squares must not take a
+    difference step below 10 ms on it, alone or in a pair (a reviewer's find: `combine` dropped
+    it, so a pair fitted the delay with a 0.5 ms step); the other parameters keep the default."""
+    cands = {c.effect: c for c in core.candidates_for(V)}
+    pair = candidates.combine(cands["sensor_delay"], cands["buoyancy"])
+    assert pair.resolution == (0.01, None)
+    assert candidates.combine(cands["buoyancy"], cands["sensor_delay"]).resolution == (None, 0.01)
+    assert cands["current"].subset([1]).resolution == ()
+
+
 def test_a_scanned_parameter_is_refined_between_its_scan_points():
     """candidates._scan_fit on a known training chi-square: least at 55 ms, piecewise linear
     between 10 ms samples (what a re-timed sampled stream gives); the scan brackets it between
@@ -559,7 +570,10 @@ def test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_named_first(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("index", [846, 1134])
+@pytest.mark.parametrize("index", [846, 1134, pytest.param(1044, marks=pytest.mark.xfail(
+    strict=True, reason="a 52 ms delay at 100 Hz with motion capture: its statistic 5.4 against a threshold "
+                        "of 69.5 (the delay's secant shares the shifted sensor noise with the disturbance); "
+                        "found at 60 ms only because the plant then handed it out at the next sample"))])
 def test_a_sensor_delay_is_named_first_not_a_servo_lag(tmp_path, index):
     """Eval 846 (no motion capture, scripted pilot, 100 Hz, 92 ms) and 1134 (motion capture,
     scripted, 50 Hz, 55 ms), dev data now. 846 was named servo lag: its delay score was below a
@@ -610,11 +624,16 @@ def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
         assert says in page and says in summary_text(rep)
 
 
-def test_a_filter_gone_astray_in_depth_comes_back_to_the_pressure_sensor(plain):
-    """Start the smoother 0.5 m off in depth with a tight initial covariance: every pressure
-    innovation is beyond the 6-sigma gate. Gated forever, the estimate never came back (dev case
-    1195: 6.5 m of drift over 60 s); after GATE_RETRY_S of gated-out innovations the kind is
-    fused ungated until it passes again, so the depth follows the sensor after a few seconds."""
+@pytest.mark.parametrize("axis", ["depth", "yaw"])
+def test_a_filter_gone_astray_comes_back_to_its_sensor(plain, axis, monkeypatch):
+    """Start the smoother 2 m off in depth (or 1 rad off in yaw, with little process noise on
+    the rotation) and a tight initial covariance: every innovation of that axis is beyond the
+    6-sigma gate. Gated forever, the estimate never came back (dev case 1195: 6.5 m of depth
+    drift over 60 s; a yaw gated while roll and pitch passed stayed 1.06 rad off, a reviewer's
+    find: the retry had one timer per kind, which the passing axes kept resetting). After
+    GATE_RETRY_S of gated-out innovations the axis is fused ungated until it passes again, so
+    the estimate follows the sensor within seconds, and chunks shorter than the retry time give
+    the same answer (the timer is carried across them)."""
     rec = plain.between(plain.t_start_s, plain.t_start_s + 20.0)
     t, dt = replay.grid_for(rec)
     p = model.pack_params(V)
@@ -622,10 +641,21 @@ def test_a_filter_gone_astray_in_depth_comes_back_to_the_pressure_sensor(plain):
     act = replay.actuator_run_commands(cmd, dt, p, 4)
     meas = estimate.measurements(rec, V, t)
     x0 = estimate.initial_state(meas, 0.0)
-    x0[estimate.I_POS + 2] += 0.5
-    est = estimate.smooth(meas, act, cmd, p, x0, estimate.Noise(p0_vel_m_s=1e-3))
-    surf = float(p[model.P_SURF])
-    late = meas.depth_ok & (t > t[0] + 3.0 * estimate.GATE_RETRY_S)
-    err = est.x[late, estimate.I_POS + 2] - surf - meas.depth_m[late]
+    if axis == "depth":
+        x0[estimate.I_POS + 2] += 2.0
+        noise, state = estimate.Noise(p0_vel_m_s=1e-3), estimate.I_POS + 2
+        got = lambda est: est.x[:, state] - float(p[model.P_SURF])  # noqa: E731
+        ok, want, tol = meas.depth_ok, meas.depth_m, 0.02
+    else:
+        x0[estimate.I_ATT + 2] += 1.0
+        noise, state = estimate.Noise(nu_ang_rad_s2=0.001), estimate.I_ATT + 2
+        got = lambda est: est.x[:, state]  # noqa: E731
+        ok, want, tol = meas.att_ok, meas.att_rad[:, 2], 0.02
+    est = estimate.smooth(meas, act, cmd, p, x0, noise)
+    late = ok & (t > t[0] + 3.0 * estimate.GATE_RETRY_S)
+    err = (got(est)[late] - want[late] + np.pi) % (2 * np.pi) - np.pi
     assert est.outliers > 0  # the first innovations were gated out
-    assert np.median(np.abs(err)) < 0.02
+    assert np.median(np.abs(err)) < tol, np.median(np.abs(err))
+    monkeypatch.setattr(estimate, "CHUNK", 80)  # 0.8 s at 100 Hz: shorter than the retry time
+    chunked = estimate.smooth(meas, act, cmd, p, x0, noise)
+    np.testing.assert_allclose(chunked.x, est.x, atol=1e-9)

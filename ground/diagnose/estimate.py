@@ -47,11 +47,13 @@ I_POS, I_ATT, I_NU, I_D, I_BG, I_BA = 0, 3, 6, 12, 18, 21
 CHUNK = 2000
 MAX_SUBSTEP_S = 0.02  # the model is integrated in steps no longer than this between two samples
 GATE_CHI2 = 36.0  # a scalar innovation beyond 6 sigma is an outlier: skipped and counted ...
-GATE_RETRY_S = 1.0  # ... unless its kind has not passed the gate for this long: then the filter,
-# not the sensor, has gone astray, and the kind is fused ungated until it passes again (ArduPilot's
-# EKF does the same with its innovation-failure timeouts, resetting height to the barometer; dev
-# case 1195: a depth innovation gated once at ArduSub's 10 Hz pressure was never fused again, and
-# the smoothed depth drifted 6.5 m over 60 s)
+GATE_RETRY_S = 1.0  # ... unless that axis has not passed the gate for this long: then the filter,
+# not the sensor, has gone astray, and the axis is fused ungated until it passes again (after
+# ArduPilot's EKF, which declares height timed out when no height innovation has passed its gate
+# for hgtRetryTime_ms, 5-10 s, and resets height to the measurement; 1 s here: a 1 s outlier
+# burst on one axis is fused, where the pool's sensors show none; dev case 1195: a depth
+# innovation gated once at ArduSub's 10 Hz pressure was never fused again, and the smoothed depth
+# drifted 6.5 m over 60 s)
 
 # Measurement kinds, in the order of `Estimate.innovation_rms`.
 MEAS = ("gyro", "accel", "depth", "attitude", "mocap_pos", "mocap_att")
@@ -231,10 +233,13 @@ def _scalar_update(x, P, H, z_minus_h, r, is_angle, gated=True):
 @njit(cache=True)
 def _filter(x0, P0, act, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, att, att_ok,
             mocap, mocap_ok, sig, surf, reset, p_reset, store, xs_f, Ps_f, xs_p, Ps_p, Fs,
-            nll, nsc, inno_ss, inno_n):
+            nll, nsc, inno_ss, inno_n, since, k0):
     """Forward EKF over len(cmd) steps from (x0, P0); stores filter and prediction when `store`.
 
     Step k: update with the measurements of row k (state at t_k), then predict to t_{k+1}.
+    `since` (6, 3), updated in place: the step (k0 + k, counted from the recording's start, so
+    chunks carry it) at which each measured axis's run of gated-out innovations began, -1 when
+    it passes (GATE_RETRY_S).
     Returns the state and covariance predicted past the last row, and the outlier count.
     """
     n = cmd.shape[0]
@@ -250,7 +255,6 @@ def _filter(x0, P0, act, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, a
     I = np.eye(NX)
     outliers = 0
     resets = 0
-    since = np.full(6, -1, np.int64)  # step each kind's run of gated-out innovations began (GATE_RETRY_S)
     retry = int(math.ceil(GATE_RETRY_S / h))
     nsub = max(1, int(math.ceil(h / MAX_SUBSTEP_S - 1e-9)))  # slow IMUs: the model steps finer
     hs = h / nsub
@@ -305,11 +309,11 @@ def _filter(x0, P0, act, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, a
                     v = mocap[k, 3 + i] - x[I_ATT + i]
                     angle = True
                 ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle,
-                                              since[kind] < 0 or k - since[kind] < retry)
+                                              since[kind, i] < 0 or k0 + k - since[kind, i] < retry)
                 if used and z2 <= GATE_CHI2:
-                    since[kind] = -1
-                elif since[kind] < 0:
-                    since[kind] = k
+                    since[kind, i] = -1
+                elif since[kind, i] < 0:
+                    since[kind, i] = k0 + k
                 l += ll
                 m += used
                 outliers += 1 - used
@@ -438,6 +442,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     starts = list(range(0, n, CHUNK))
     checkpoints = []
     x, P = np.asarray(x0, float).copy(), P0
+    since = np.full((6, 3), -1, np.int64)  # _filter: runs of gated-out innovations, across chunks
     outliers = resets = 0
 
     def stores(m):
@@ -447,12 +452,12 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     last = None  # the last chunk is stored on the way forward (a short window: one pass only)
     for ci, s0 in enumerate(starts):
         s1 = min(s0 + CHUNK, n)
-        checkpoints.append((x.copy(), P.copy()))
+        checkpoints.append((x.copy(), P.copy(), since.copy()))
         sl = slice(s0, s1)
         keep = ci == len(starts) - 1
         st = stores(s1 - s0) if keep else (dummy2, dummy3, dummy2, dummy3, dummy3)
         x, P, o, r = _filter(x, P, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
-                          meas.reset[sl], p_reset, keep, *st, nll[sl], nsc[sl], inno_ss, inno_n)
+                          meas.reset[sl], p_reset, keep, *st, nll[sl], nsc[sl], inno_ss, inno_n, since, s0)
         outliers += o
         resets += r
         if keep:
@@ -469,10 +474,10 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
             (xf, Pf, xp, Pp, Fs), last = last, None  # held once: memory stays one chunk of stores
         else:  # re-run from the chunk's checkpoint, storing this time
             xf, Pf, xp, Pp, Fs = stores(m)
-            xc, Pc = checkpoints[ci]
+            xc, Pc, sc = checkpoints[ci]
             _filter(xc, Pc, act[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
                     meas.reset[sl], p_reset, True, xf, Pf, xp, Pp, Fs, np.zeros(m), np.zeros(m, np.int64),
-                    np.zeros(len(MEAS)), np.zeros(len(MEAS), np.int64))
+                    np.zeros(len(MEAS)), np.zeros(len(MEAS), np.int64), sc.copy(), s0)
         P_next = _rts(xf, Pf, xp, Pp, Fs, x_next, P_next, xs[sl], stds[sl])
         x_next = xs[s0].copy()
     rms = {MEAS[i]: float(math.sqrt(inno_ss[i] / inno_n[i])) for i in range(len(MEAS)) if inno_n[i]}
