@@ -9,9 +9,10 @@ it fits, their start values and bounds, and `apply(theta)` giving the corrected 
 `Evaluator` turns a corrected model into the residual channels along the recording (the
 generalised-force residual of replay.py plus the sensor-consistency channels) and caches the
 expensive pieces (reconstruction per sensor correction, actuator run per actuator parameters).
-`fit` fits a candidate's parameters on the training samples with scipy's least_squares and
-scores it on the held-out samples (chi-square improvement, fraction of the excess explained,
-BIC on the training part, per-axis signature).
+`fit` fits a candidate's parameters on the training samples (scipy's least_squares; a scanned
+one-parameter candidate, the delay, by a scan and a bounded search) and scores it on the
+held-out samples (chi-square improvement, fraction of the excess explained, BIC on the training
+part, per-axis signature), with its parameters' sd allowing for coloured residuals.
 """
 
 from __future__ import annotations
@@ -57,6 +58,10 @@ class Candidate:
     # (`_scan_fit`; one parameter only)
     step: float | None = None
     scan: tuple = ()
+    # per parameter, the smallest change the residual resolves (a delay: 10 ms; between samples
+    # it is piecewise linear), least squares' difference step where it is above 1 % of the
+    # parameter's scale; () or None: 1 % of the scale
+    resolution: tuple = ()
 
     @property
     def n_params(self) -> int:
@@ -72,7 +77,8 @@ class Candidate:
         keep = list(keep)
         pick = lambda t: tuple(t[i] for i in keep)  # noqa: E731
         return replace(self, keys=pick(self.keys), x0=pick(self.x0), lower=pick(self.lower),
-                       upper=pick(self.upper), one_at_a_time=False)
+                       upper=pick(self.upper), one_at_a_time=False,
+                       resolution=pick(self.resolution) if self.resolution else ())
 
     def apply(self, theta, base: CorrectedModel) -> CorrectedModel:
         theta = np.asarray(theta, float)
@@ -239,7 +245,8 @@ def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
     # adversary's find) and refines the best point (`_scan_fit`)
     out.append(Candidate("sensor_delay", "misestimated" if s.delay > 0 else "missing",
                          (("sensors.delay", None),), (s.delay,), (0.0,), (0.5,),
-                         step=0.05, scan=(0.0, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5)))
+                         step=0.05, scan=(0.0, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5),
+                         resolution=(0.01,)))
     # one degraded unit (a jet's thrust fraction in 0.05-1.5; a fixed two-way thruster's may be
     # negative: it pushes the wrong way), tested one unit at a time: four free scales would
     # mimic any common-mode thrust error (eval 216-315: the azimuth transient's thrust loss was
@@ -255,8 +262,10 @@ def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
 
 def combine(a: Candidate, b: Candidate) -> Candidate:
     """Two candidates fitted together (two effects at once)."""
+    res = lambda c: tuple(c.resolution) or (None,) * c.n_params  # noqa: E731
     return Candidate(f"{a.effect}+{b.effect}", a.kind, a.keys + b.keys, a.x0 + b.x0, a.lower + b.lower,
-                     a.upper + b.upper, tuple(dict.fromkeys(a.switch_on + b.switch_on)))
+                     a.upper + b.upper, tuple(dict.fromkeys(a.switch_on + b.switch_on)),
+                     resolution=res(a) + res(b))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -376,7 +385,8 @@ def chi2(res: np.ndarray, split: Split, idx) -> tuple[float, np.ndarray]:
 
 def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: CorrectedModel | None = None,
         max_iter: int = 3, x0=None) -> Fit:
-    """Fit `cand` on the training samples (least squares), score on the held-out samples."""
+    """Fit `cand` on the training samples (least squares; `_scan_fit` for a scanned candidate),
+    score on the held-out samples (`_scored`)."""
     base = base or ev.base
     w = np.sqrt(split.neff[split.active]) / split.sigma[split.active]
     tr = split.train
@@ -386,8 +396,8 @@ def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: Co
     if cand.scan:  # a one-parameter candidate far from linear (Candidate.scan): scan, then refine
         theta = _scan_fit(lambda th: chi2(ev.residual(cand.apply(th, base)), split, tr)[0],
                           theta0, lo, hi, cand.scan)
-        # its Jacobian for the sd: a central difference over the scan's finest spacing
-        h = float(np.min(np.diff(np.unique(cand.scan))))
+        # its Jacobian for the sd: a central difference over the resolution
+        h = float(cand.resolution[0]) if cand.resolution else float(np.min(np.diff(np.unique(cand.scan))))
         a, b = np.clip(theta - h, lo, hi), np.clip(theta + h, lo, hi)
         J = (ev.residual(cand.apply(b, base))[tr][:, split.active] * w
              - ev.residual(cand.apply(a, base))[tr][:, split.active] * w) / float(b[0] - a[0])
@@ -411,7 +421,9 @@ def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: Co
         to_theta = lambda z: theta0 + (np.asarray(z) - 1.0) * scale  # noqa: E731
         zlo, zhi = (lo - theta0) / scale + 1.0, (hi - theta0) / scale + 1.0
         z0 = np.clip(np.ones_like(theta0), zlo + 1e-9, zhi - 1e-9)
-        sol = least_squares(lambda z: fun(to_theta(z)), z0, bounds=(zlo, zhi), diff_step=1e-2,
+        res = [r or 0.0 for r in cand.resolution] if cand.resolution else [0.0] * len(theta0)
+        diff = np.maximum(1e-2, np.asarray(res, float) / scale)  # a pair with a delay (Candidate.resolution)
+        sol = least_squares(lambda z: fun(to_theta(z)), z0, bounds=(zlo, zhi), diff_step=diff,
                             max_nfev=max_iter + (2 if cand.n_params <= 2 else 0), method="trf")
         theta = np.clip(to_theta(sol.x), lo, hi)
         J = np.asarray(sol.jac)[:-len(theta)] / scale  # d(weighted residual)/d theta at the solution
@@ -455,7 +467,8 @@ def _scored(ev, cand: Candidate, theta, split: Split, res0, base, J=None, prior=
     if J is not None:
         w = np.sqrt(split.neff[split.active]) / split.sigma[split.active]
         dt = float(np.median(np.diff(tr))) * ev_dt(ev) if len(tr) > 1 else 1.0
-        sd = sandwich_sd(J, np.nan_to_num(res[tr][:, split.active] * w), prior, max(1, int(round(HAC_LAG_S / dt))))
+        sd = sandwich_sd(np.nan_to_num(J), np.nan_to_num(res[tr][:, split.active] * w), prior,
+                         max(1, int(round(HAC_LAG_S / dt))))
     c0_tr, _ = chi2(res0, split, tr)
     c_tr, _ = chi2(res, split, tr)
     c0_h, per0 = chi2(res0, split, split.holdout)

@@ -190,8 +190,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")
     above = [s for s in scores if s.effect not in skip and s.statistic > cal.threshold[s.effect]]
     significant = [s for s in above if not (s.holdout_drop <= 0)]  # NaN (imu_bias) passes: it has no residual step
-    # --- the significant force candidates (at most RANK_TOP, by their linear held-out drop) fitted by
-    # nonlinear least squares on the training blocks
+    # --- the significant force candidates (at most RANK_TOP, by their linear held-out drop) fitted
+    # on the training blocks (candidates.fit: nonlinear least squares, or a scan for the delay)
     pool = sorted((s for s in significant if s.effect != "imu_bias"), key=lambda s: -s.holdout_drop)[:RANK_TOP]
     # above threshold, but the linear step fits worse on held-out data: the tangent at the start
     # is the wrong shape (a lag far from its start value), not the effect absent; its nonlinear

@@ -196,10 +196,13 @@ def held_commands(rec, vehicle: Vehicle, t_grid) -> np.ndarray:
     once, so the smoother, the candidates, the null draws and the shooting all see them.
 
     The average, not the command at t: the grid is the IMU's period (25-50 Hz at ArduSub
-    rates) and the commands change every 10 ms, so the one at the step's start was 5-15 ms
-    stale on average, by an amount that depends on the IMU's phase; lags and delays were
-    fitted 8-25 % off to make up for it (dev cases 1108, 1134, 1184: 7.8, 23 and 7.6 % off,
-    then 4.0, 3.8 and 1.0 %)."""
+    rates) and the commands change every 10 ms, so the one at the step's start lagged the
+    step's mean command by dt/2 plus up to a command period, 15-25 ms at 50-25 Hz, by an amount
+    that depends on the IMU's phase; lags and delays were fitted 8-25 % off to make up for it
+    (dev cases 1108, 1134, 1184: 7.8, 23 and 7.6 % off, then 4.0, 3.8 and 1.0 %). The same
+    value is the model's instantaneous input at t (half a step early there; it matters where
+    the nominal has no motor or servo lag, so the command acts directly). A single grid time
+    (no step) gets the command in force at it."""
     ts = np.asarray(rec.servo.time_s, float)
     cmd = flown_commands(rec, vehicle)
     t_grid = np.asarray(t_grid, float)
