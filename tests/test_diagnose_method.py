@@ -624,7 +624,9 @@ def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
         assert says in page and says in summary_text(rep)
 
 
-@pytest.mark.parametrize("axis", ["depth", "yaw"])
+@pytest.mark.parametrize("axis", ["depth", pytest.param("yaw", marks=pytest.mark.xfail(
+    strict=True, reason="only depth is retried: fusing ATTITUDE or motion capture ungated after a second "
+                        "(their yaw origins can differ for good) cost three right verdicts (estimate.GATE_RETRY_S)"))])
 def test_a_filter_gone_astray_comes_back_to_its_sensor(plain, axis, monkeypatch):
     """Start the smoother 2 m off in depth (or 1 rad off in yaw, with little process noise on
     the rotation) and a tight initial covariance: every innovation of that axis is beyond the
