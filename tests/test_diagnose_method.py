@@ -96,15 +96,21 @@ def test_held_commands_are_the_recorded_commands_averaged_over_each_grid_step(pl
     np.testing.assert_allclose(got[2], 0.5 * (cmd[2] + cmd[3]), atol=1e-9)
 
 
-def test_chunked_smoother_equals_one_pass(plain, monkeypatch):
-    """Memory bounded by the chunk, not the recording: the chunked RTS gives the same answer."""
-    rec = plain.between(plain.t_start_s, plain.t_start_s + 12.0)
+def _smoother_inputs(rec, seconds: float):
+    """(grid, params, commands, actuator run, measurements, initial state) of the smoother over
+    the first `seconds` of a recording."""
+    rec = rec.between(rec.t_start_s, rec.t_start_s + seconds)
     t, dt = replay.grid_for(rec)
     p = model.pack_params(V)
     cmd = replay.held_commands(rec, V, t)
     act = replay.actuator_run_commands(cmd, dt, p, 4)
     meas = estimate.measurements(rec, V, t)
-    x0 = estimate.initial_state(meas, 0.0)
+    return t, p, cmd, act, meas, estimate.initial_state(meas, 0.0)
+
+
+def test_chunked_smoother_equals_one_pass(plain, monkeypatch):
+    """Memory bounded by the chunk, not the recording: the chunked RTS gives the same answer."""
+    t, p, cmd, act, meas, x0 = _smoother_inputs(plain, 12.0)
     one = estimate.smooth(meas, act, cmd, p, x0)
     monkeypatch.setattr(estimate, "CHUNK", 173)
     chunked = estimate.smooth(meas, act, cmd, p, x0)
@@ -636,13 +642,7 @@ def test_a_filter_gone_astray_comes_back_to_its_sensor(plain, axis, monkeypatch)
     GATE_RETRY_S of gated-out innovations the axis is fused ungated until it passes again, so
     the estimate follows the sensor within seconds, and chunks shorter than the retry time give
     the same answer (the timer is carried across them)."""
-    rec = plain.between(plain.t_start_s, plain.t_start_s + 20.0)
-    t, dt = replay.grid_for(rec)
-    p = model.pack_params(V)
-    cmd = replay.held_commands(rec, V, t)
-    act = replay.actuator_run_commands(cmd, dt, p, 4)
-    meas = estimate.measurements(rec, V, t)
-    x0 = estimate.initial_state(meas, 0.0)
+    t, p, cmd, act, meas, x0 = _smoother_inputs(plain, 20.0)
     if axis == "depth":
         x0[estimate.I_POS + 2] += 2.0
         noise, state = estimate.Noise(p0_vel_m_s=1e-3), estimate.I_POS + 2
