@@ -421,8 +421,8 @@ def fit(ev: Evaluator, cand: Candidate, split: Split, res0: np.ndarray, base: Co
         to_theta = lambda z: theta0 + (np.asarray(z) - 1.0) * scale  # noqa: E731
         zlo, zhi = (lo - theta0) / scale + 1.0, (hi - theta0) / scale + 1.0
         z0 = np.clip(np.ones_like(theta0), zlo + 1e-9, zhi - 1e-9)
-        res = [r or 0.0 for r in cand.resolution] if cand.resolution else [0.0] * len(theta0)
-        diff = np.maximum(1e-2, np.asarray(res, float) / scale)  # a pair with a delay (Candidate.resolution)
+        resol = [r or 0.0 for r in cand.resolution] if cand.resolution else [0.0] * len(theta0)
+        diff = np.maximum(1e-2, np.asarray(resol, float) / scale)  # a pair with a delay (Candidate.resolution)
         sol = least_squares(lambda z: fun(to_theta(z)), z0, bounds=(zlo, zhi), diff_step=diff,
                             max_nfev=max_iter + (2 if cand.n_params <= 2 else 0), method="trf")
         theta = np.clip(to_theta(sol.x), lo, hi)
@@ -466,9 +466,8 @@ def _scored(ev, cand: Candidate, theta, split: Split, res0, base, J=None, prior=
     sd = None
     if J is not None:
         w = np.sqrt(split.neff[split.active]) / split.sigma[split.active]
-        dt = float(np.median(np.diff(tr))) * ev_dt(ev) if len(tr) > 1 else 1.0
         sd = sandwich_sd(np.nan_to_num(J), np.nan_to_num(res[tr][:, split.active] * w), prior,
-                         max(1, int(round(HAC_LAG_S / dt))))
+                         max(1, int(round(HAC_LAG_S / train_spacing_s(ev, split)))))
     c0_tr, _ = chi2(res0, split, tr)
     c_tr, _ = chi2(res, split, tr)
     c0_h, per0 = chi2(res0, split, split.holdout)
@@ -509,7 +508,10 @@ def sandwich_sd(J: np.ndarray, r: np.ndarray, prior: np.ndarray, lag: int) -> np
     return np.sqrt(np.maximum(np.diag(Ai @ B @ Ai), 0.0))
 
 
-def ev_dt(ev) -> float:
-    """The grid step of an evaluator (of its first segment)."""
+def train_spacing_s(ev, split: Split) -> float:
+    """Seconds between consecutive training samples (the decimation step on the evaluator's
+    grid, of its first segment); 1 when there are fewer than two."""
+    if len(split.train) < 2:
+        return 1.0
     e = ev.evaluators[0] if hasattr(ev, "evaluators") else ev
-    return e.traj0.dt_s
+    return float(split.train[1] - split.train[0]) * e.traj0.dt_s

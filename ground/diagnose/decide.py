@@ -39,7 +39,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from onboard.vehicle import VehicleFileError
 
-from .candidates import ev_dt, parameter_scale
+from .candidates import parameter_scale, train_spacing_s
 
 ALPHA_FAMILY = 0.01
 ALPHA_RECORDING = 0.05
@@ -102,7 +102,7 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
 
     dist, sd = ev.disturbance()
     M0 = model.mass_matrix(model.pack_params(vehicle), 1.0, 1.0)  # d enters through M0^-1 (estimate.py)
-    stride = max(1, int(round(DECORRELATE_S / ((split.train[1] - split.train[0]) * ev_dt(ev)))) if len(split.train) > 1 else 1)
+    stride = max(1, int(round(DECORRELATE_S / train_spacing_s(ev, split)))) if len(split.train) > 1 else 1
     tr, ho = split.train[::stride], split.holdout[::stride]
     w = 1.0 / np.maximum(sd, 1e-9)
     y_tr = np.nan_to_num((dist[tr] * w[tr]).ravel())
