@@ -40,6 +40,11 @@ class CorrectedModel:
     correction: replay.SensorCorrection = field(default_factory=replay.SensorCorrection)
     thrust_fraction: tuple | None = None  # per unit, 1 = healthy (model.faulty_command)
     curve_gain: tuple | None = None  # (forward, reverse) of the fixed thrusters' curve
+    # a probe, not a model: the commands act this much later (whole grid steps). Against the
+    # measurements' own time base it is what a sensor delay does to the dynamics (spec 5: every
+    # stream late by d = the vehicle answering the commands d later), without re-timing the
+    # sensor noise (the sensor delay's linear score, `decide.linear_scores`)
+    command_delay_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -300,16 +305,32 @@ class Evaluator:
         return self._traj[key]
 
     def command(self, traj, cm: CorrectedModel, command=None) -> np.ndarray:
+        """The commands as the corrected model's thrusters act on them (`command` instead of the
+        trajectory's: the lead-in's); `command_delay_s` through `timed`."""
         command = traj.command if command is None else command
         if cm.thrust_fraction is None and cm.curve_gain is None:
             return command
         return model.faulty_command(cm.vehicle, command, cm.thrust_fraction, cm.curve_gain)
 
-    def actuators(self, traj, p, cm: CorrectedModel) -> np.ndarray:
+    def timed(self, traj, cm: CorrectedModel) -> tuple[np.ndarray, replay.LeadIn | None]:
+        """(commands, lead-in) of the corrected model, delayed by its `command_delay_s` in whole
+        grid steps: the lead-in's last commands move into the window, the first one is held
+        before them."""
+        cmd = self.command(traj, cm)
         lead = self.lead
         if lead is not None:
             lead = replay.LeadIn(self.command(traj, cm, lead.command), lead.x0)
-        return self.runs.get(self.command(traj, cm), traj.dt_s, p, self.k, lead)
+        n = int(round(cm.command_delay_s / traj.dt_s))
+        if n <= 0:
+            return cmd, lead
+        m = 0 if lead is None else len(lead.command)
+        full = cmd if not m else np.concatenate([lead.command, cmd])
+        full = np.concatenate([np.repeat(full[:1], min(n, len(full)), axis=0), full[:max(len(full) - n, 0)]])
+        return full[m:], (lead if not m else replace(lead, command=full[:m]))
+
+    def actuators(self, traj, p, cm: CorrectedModel) -> np.ndarray:
+        cmd, lead = self.timed(traj, cm)
+        return self.runs.get(cmd, traj.dt_s, p, self.k, lead)
 
     def disturbance(self) -> tuple[np.ndarray, np.ndarray]:
         """(N, 6) smoothed generalised-force disturbance of the nominal model and its sd (N, N m)."""
@@ -319,8 +340,9 @@ class Evaluator:
     def residual(self, cm: CorrectedModel) -> np.ndarray:
         traj = self.trajectory(cm.correction)
         p = model.pack_params(cm.vehicle)
-        act = self.actuators(traj, p, cm)
-        acc = replay.model_acceleration(traj, act, p, command=self.command(traj, cm))
+        cmd, lead = self.timed(traj, cm)
+        act = self.runs.get(cmd, traj.dt_s, p, self.k, lead)
+        acc = replay.model_acceleration(traj, act, p, command=cmd)
         dyn = replay.acceleration_residual(traj, act, p, acc)
         return np.column_stack([dyn, traj.kinematic])
 
@@ -444,8 +466,8 @@ def _scan_fit(train_chi2, theta0, lo, hi, scan) -> np.ndarray:
     off, least squares moved dev case 1253's delay to 69 ms against a truth of 55 and a
     training minimum at 53-55)."""
     grid = np.unique(np.clip(np.concatenate([theta0, np.asarray(scan, float)]), lo[0], hi[0]))
-    vals = [train_chi2(np.array([g])) for g in grid]
-    i = int(np.argmin(vals))
+    vals = np.array([train_chi2(np.array([g])) for g in grid], float)
+    i = int(np.argmin(np.where(np.isfinite(vals), vals, np.inf)))  # a NaN (a diverged point) is no minimum
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
     best = grid[i]
     if b - a > SCAN_TOL:
@@ -466,7 +488,7 @@ def _scored(ev, cand: Candidate, theta, split: Split, res0, base, J=None, prior=
     sd = None
     if J is not None:
         w = np.sqrt(split.neff[split.active]) / split.sigma[split.active]
-        sd = sandwich_sd(np.nan_to_num(J), np.nan_to_num(res[tr][:, split.active] * w), prior,
+        sd = sandwich_sd(J, res[tr][:, split.active] * w, prior,
                          max(1, int(round(HAC_LAG_S / train_spacing_s(ev, split)))))
     c0_tr, _ = chi2(res0, split, tr)
     c_tr, _ = chi2(res, split, tr)
@@ -498,6 +520,10 @@ def sandwich_sd(J: np.ndarray, r: np.ndarray, prior: np.ndarray, lag: int) -> np
     fit leaves (a second effect, a biased lag) is slow and coloured, and there the bound is
     optimistic by factors of 5-50 (dev cases 1217, 1252, 1259; HAC_LAG_S chosen there among
     0-5 s)."""
+    # a sample the model could not evaluate carries nothing (inf too: as 1.8e308 its square
+    # made the sd NaN, an adversary's find)
+    J = np.nan_to_num(np.asarray(J, float), nan=0.0, posinf=0.0, neginf=0.0)
+    r = np.nan_to_num(np.asarray(r, float), nan=0.0, posinf=0.0, neginf=0.0)
     A = np.einsum("tcp,tcq->pq", J, J) + np.diag(np.asarray(prior, float))
     u = np.einsum("tcp,tc->tp", J, r)
     B = u.T @ u
@@ -508,10 +534,15 @@ def sandwich_sd(J: np.ndarray, r: np.ndarray, prior: np.ndarray, lag: int) -> np
     return np.sqrt(np.maximum(np.diag(Ai @ B @ Ai), 0.0))
 
 
+def grid_dt(ev) -> float:
+    """The evaluator's grid spacing in seconds (of its first segment)."""
+    e = ev.evaluators[0] if hasattr(ev, "evaluators") else ev
+    return e.traj0.dt_s
+
+
 def train_spacing_s(ev, split: Split) -> float:
     """Seconds between consecutive training samples (the decimation step on the evaluator's
     grid, of its first segment); 1 when there are fewer than two."""
     if len(split.train) < 2:
         return 1.0
-    e = ev.evaluators[0] if hasattr(ev, "evaluators") else ev
-    return float(split.train[1] - split.train[0]) * e.traj0.dt_s
+    return float(split.train[1] - split.train[0]) * grid_dt(ev)

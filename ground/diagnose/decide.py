@@ -32,14 +32,14 @@ even its best-determined parameter has a standard deviation above half its refer
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
 from onboard.vehicle import VehicleFileError
 
-from .candidates import parameter_scale, train_spacing_s
+from .candidates import grid_dt, parameter_scale, train_spacing_s
 
 ALPHA_FAMILY = 0.01
 ALPHA_RECORDING = 0.05
@@ -111,6 +111,7 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
     for c in cands:
         if c.effect == "imu_bias":
             continue
+        either = False  # several directions for one parameter, the larger statistic taken
         try:
             if c.n_params == 0:
                 cols = [ev.residual(c.apply((), ev.base)) - res0]
@@ -123,6 +124,21 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                 # finite differences below (the secant divided by zero: never testable).
                 theta0 = np.zeros(c.n_params)
                 cols = [(ev.residual(c.apply(c.x0, ev.base)) - res0) / float(c.x0[0])]
+            elif c.keys == (("sensors.delay", None),):
+                # the delay, two directions, the family's statistic the larger (the null draws
+                # calibrate that same maximum): the commands acting later by its step (whole
+                # grid steps, CorrectedModel.command_delay_s), the delay's effect on the dynamics
+                # without re-timing the sensor noise; and the secant of the delay itself, which
+                # re-times every stream. The secant alone differentiates the noise the
+                # disturbance shares: its null threshold stood 5-10x the other families' and
+                # true delays were named servo lag (dev 1500, 1584, 1599); the probe alone lost
+                # a 25 Hz ArduSub-rate delay the secant had found (dev 1543)
+                theta0 = np.asarray(c.x0, float)
+                h = max(1, round(c.step / grid_dt(ev))) * grid_dt(ev)
+                th = theta0 + c.step if theta0[0] + c.step <= c.upper[0] else theta0 - c.step
+                cols = [(ev.residual(replace(ev.base, command_delay_s=h)) - res0) / h,
+                        (ev.residual(c.apply(th, ev.base)) - res0) / float(th[0] - theta0[0])]
+                either = True
             else:
                 theta0 = np.asarray(c.x0, float)
                 lo, hi = np.asarray(c.lower, float), np.asarray(c.upper, float)
@@ -141,6 +157,11 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
         J_tr = np.nan_to_num(np.column_stack([(f[tr] * w[tr]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         J_ho = np.nan_to_num(np.column_stack([(f[ho] * w[ho]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         ref = reference_magnitude(c, vehicle)
+        if either:
+            tests = [_regress(J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho) + (j,) for j in range(J_tr.shape[1])]
+            S, drop, dth, sdp, j = max(tests, key=lambda t: t[0])
+            out.append(Score(c.effect, 1, S, drop, theta0 + dth, sdp, ref, (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho)))
+            continue
         if c.one_at_a_time:  # each parameter alone; the family's statistic is the largest (the
             # null draws calibrate that same maximum)
             tests = [_regress(J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho) + ((j,),) for j in range(J_tr.shape[1])]
