@@ -155,8 +155,8 @@ def test_a_perfect_model_shows_no_delay_and_no_added_mass_in_the_linear_scores(t
     cands = [c for c in candidates.candidates_for(truth) if c.effect in ("sensor_delay", "added_mass")]
     got = {s.effect: s for s in decide.linear_scores(ev, cands, split, res0, truth)}
     # 1.9 ms remain (6.5 before): a delay that is not a whole number of IMU samples leaves a
-    # bias of a few ms in the perfect model's own residual, 3.5 ms at 100 Hz and 5 ms (none at
-    # 10 or 20 ms); the null draws carry it too, so it raises the delay's threshold, unexplained
+    # bias of a few ms in the perfect model's own linear step (3.5 ms with 15 ms at 100 Hz, 3.8
+    # with 5 ms; none with 10 or 20 ms); the null draws carry it too, unexplained
     assert got["sensor_delay"].theta[0] == pytest.approx(0.015, abs=0.003)
     np.testing.assert_allclose(got["added_mass"].theta[:3], truth.hydro.added_mass[:3], rtol=0.03)
 
@@ -480,6 +480,10 @@ def test_sandwich_sd_hand_computed_for_white_residuals():
     J0 = J.copy()
     J0[3, 0, 0] = 0.0
     assert candidates.sandwich_sd(Jbad, rbad, np.zeros(1), 1)[0] == pytest.approx(
+        candidates.sandwich_sd(J0, r[:, None], np.zeros(1), 1)[0])
+    # ... and a residual the model could not evaluate drops its sample from the bread as well
+    # (a reviewer's find: zeroed alone, the sd came out too small)
+    assert candidates.sandwich_sd(J, rbad, np.zeros(1), 1)[0] == pytest.approx(
         candidates.sandwich_sd(J0, r[:, None], np.zeros(1), 1)[0])
 
 

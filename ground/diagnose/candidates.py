@@ -120,7 +120,8 @@ class Candidate:
                 values[key] = cur
         if values:
             v = v.with_values(values)
-        return CorrectedModel(v, corr, None if frac is None else tuple(frac), gain)
+        return replace(base, vehicle=v, correction=corr, thrust_fraction=None if frac is None else tuple(frac),
+                       curve_gain=gain)
 
     def parameters(self, theta, base: Vehicle, deviations: bool = False) -> dict:
         """Fitted values keyed by vehicle-file key, in that key's shape (spec/recording.md 2).
@@ -520,10 +521,13 @@ def sandwich_sd(J: np.ndarray, r: np.ndarray, prior: np.ndarray, lag: int) -> np
     fit leaves (a second effect, a biased lag) is slow and coloured, and there the bound is
     optimistic by factors of 5-50 (dev cases 1217, 1252, 1259; HAC_LAG_S chosen there among
     0-5 s)."""
-    # a sample the model could not evaluate carries nothing (inf too: as 1.8e308 its square
-    # made the sd NaN, an adversary's find)
-    J = np.nan_to_num(np.asarray(J, float), nan=0.0, posinf=0.0, neginf=0.0)
-    r = np.nan_to_num(np.asarray(r, float), nan=0.0, posinf=0.0, neginf=0.0)
+    # a sample the model could not evaluate carries nothing, neither bread nor meat (inf too: as
+    # 1.8e308 its square made the sd NaN, an adversary's find)
+    J = np.array(J, float)
+    r = np.array(r, float)
+    bad = ~np.isfinite(J).all(axis=2) | ~np.isfinite(r)
+    J[bad] = 0.0
+    r[bad] = 0.0
     A = np.einsum("tcp,tcq->pq", J, J) + np.diag(np.asarray(prior, float))
     u = np.einsum("tcp,tc->tp", J, r)
     B = u.T @ u

@@ -664,7 +664,7 @@ def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: Co
         p = model.pack_params(cm.vehicle)
         act = ev.actuators(tr, p, cm)
         ext = extra if label == "after" else None
-        pred = (replay.shoot(tr, act, p, starts, n, substeps=2, command=ev.command(tr, cm), extra_force=ext,
+        pred = (replay.shoot(tr, act, p, starts, n, substeps=2, command=ev.timed(tr, cm)[0], extra_force=ext,
                              mass_diag=mass_diag) if len(starts) else np.zeros((0, n, 10)))
         pred, meas = replay.predicted_vs_measured(traj, pred, starts, n, cm.vehicle, cm.correction)
         out[label] = pred

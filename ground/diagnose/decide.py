@@ -134,7 +134,11 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                 # true delays were named servo lag (dev 1500, 1584, 1599); the probe alone lost
                 # a 25 Hz ArduSub-rate delay the secant had found (dev 1543)
                 theta0 = np.asarray(c.x0, float)
-                h = max(1, round(c.step / grid_dt(ev))) * grid_dt(ev)
+                # the step in whole grid steps, halves rounded up, at least one (50 ms: 60 ms at
+                # 50 Hz, 40 ms at 25 Hz, 100 ms at 10 Hz; round() on a median dt 1e-16 off gave 40
+                # or 60 ms at 50 Hz, half to even)
+                dt = grid_dt(ev)
+                h = max(1, int(c.step / dt + 0.5 + 1e-6)) * dt
                 th = theta0 + c.step if theta0[0] + c.step <= c.upper[0] else theta0 - c.step
                 cols = [(ev.residual(replace(ev.base, command_delay_s=h)) - res0) / h,
                         (ev.residual(c.apply(th, ev.base)) - res0) / float(th[0] - theta0[0])]

@@ -169,11 +169,12 @@ def _dynamics(xe, act, u, p, minv, X, Xdot, out, acc):
 
 @njit(cache=True)
 def _step(xe, act_a, act_b, u, p, minv, h, X, Xdot):
-    """RK4 of the rigid-body and disturbance states over h, the actuator states going linearly
-    from act_a at its start to act_b at its end (the plant integrates them along: held at
-    act_a, the thrust reached the estimate half a step late, and every null draw of a 50 Hz
-    recording read as a -7 ms sensor delay and a heavier vehicle: the delay's and the added
-    mass's thresholds 10-20x the other families', dev case 1134)."""
+    """RK4 of the rigid-body and disturbance states over h (Press et al., *Numerical Recipes*,
+    sec. 17.1: stages at t, t + h/2 and t + h), the actuator states going linearly from act_a at
+    its start to act_b at its end, as the plant moves them along. Held at act_a, the thrust
+    reached the estimate up to half a step late; together with the sample placement
+    (`_on_grid`) that made every null draw of dev case 1134 (50 Hz) read as a -6 ms sensor delay
+    and a heavier vehicle, and the delay's and added mass's thresholds 10-20x the others'."""
     k1, k2, k3, k4 = np.empty(NX), np.empty(NX), np.empty(NX), np.empty(NX)
     acc = np.empty(3)
     act_m = 0.5 * (act_a + act_b)
@@ -320,18 +321,21 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                     v = mocap[k, 3 + i] - x[I_ATT + i]
                     angle = True
                 if kind == 2 and since[kind, i] >= 0 and k0 + k - since[kind, i] >= retry:
-                    # depth timed out: reset to the measurement, its variance the sensor's and
-                    # its correlations dropped (ArduPilot's ResetHeight); the update below then
-                    # passes. Fusing it ungated instead made the estimate overshoot and oscillate
-                    # once the timeout was 5 s (a 2 m offset still 0.7 m off after 10 s)
+                    # depth timed out: the height reset to the measurement, its variance the
+                    # sensor's and its correlations dropped, and that sample not fused again
+                    # (ArduPilot EKF3's ResetHeight and FuseVelPosNED; unlike it, the vertical
+                    # velocity is left alone). Fusing depth ungated instead made the estimate
+                    # overshoot and oscillate once the timeout was 5 s (a 2 m start error still
+                    # 0.7 m off after 10 s)
                     x[2] += v
-                    v = 0.0
                     for j in range(NX):
                         P[2, j] = 0.0
                         P[j, 2] = 0.0
                     P[2, 2] = sig[kind] ** 2
+                    since[kind, i] = -1
+                    continue
                 ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle)
-                if used and z2 <= GATE_CHI2:
+                if used:
                     since[kind, i] = -1
                 elif since[kind, i] < 0:
                     since[kind, i] = k0 + k
@@ -519,10 +523,12 @@ def _on_grid(t_grid: np.ndarray, t: np.ndarray, y: np.ndarray, angles=()):
     """Samples put on their nearest grid step, at most one row per sample, each row's value the
     stream interpolated to the row's own time (columns `angles` unwrapped for it): (values, ok).
 
-    The value of the nearest sample instead (the last one where several share a row) is off by
-    up to half a step, and not evenly: motion capture at 100 Hz on a 50 Hz grid put every other
-    row's sample 10 ms late, and each null draw of such a recording read as a -6 ms sensor delay
-    (dev case 1134)."""
+    A row before the first sample (or after the last) holds it. The value of the nearest sample
+    instead (the last one where several share a row) was off by up to half a step, and not
+    evenly: undelayed motion capture 5 ms off a delayed IMU's grid; together with the actuators
+    held over a filter step (`_step`) each null draw of dev case 1134 read as a -6 ms sensor
+    delay. A row between two samples averages their noise (variance down to half; R is not
+    scaled for it), and a stream slower than the grid gives neighbouring rows shared samples."""
     y = np.asarray(y, float).reshape(len(t), -1)
     t = np.asarray(t, float)
     out = np.zeros((len(t_grid), y.shape[1]))
