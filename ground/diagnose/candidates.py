@@ -67,6 +67,9 @@ class Candidate:
     # it is piecewise linear), least squares' difference step where it is above 1 % of the
     # parameter's scale; () or None: 1 % of the scale
     resolution: tuple = ()
+    # its linear score also tries the commands acting `step` later (CorrectedModel.command_delay_s,
+    # `decide.linear_scores`): a delay's effect on the dynamics without re-timing the sensor noise
+    command_probe: bool = False
 
     @property
     def n_params(self) -> int:
@@ -252,7 +255,7 @@ def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
     out.append(Candidate("sensor_delay", "misestimated" if s.delay > 0 else "missing",
                          (("sensors.delay", None),), (s.delay,), (0.0,), (0.5,),
                          step=0.05, scan=(0.0, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5),
-                         resolution=(0.01,)))
+                         resolution=(0.01,), command_probe=True))
     # one degraded unit (a jet's thrust fraction in 0.05-1.5; a fixed two-way thruster's may be
     # negative: it pushes the wrong way), tested one unit at a time: four free scales would
     # mimic any common-mode thrust error (eval 216-315: the azimuth transient's thrust loss was
@@ -315,13 +318,13 @@ class Evaluator:
 
     def timed(self, traj, cm: CorrectedModel) -> tuple[np.ndarray, replay.LeadIn | None]:
         """(commands, lead-in) of the corrected model, delayed by its `command_delay_s` in whole
-        grid steps: the lead-in's last commands move into the window, the first one is held
-        before them."""
+        grid steps (`grid_steps`): the lead-in's last commands move into the window, the first
+        one is held before them."""
         cmd = self.command(traj, cm)
         lead = self.lead
         if lead is not None:
             lead = replay.LeadIn(self.command(traj, cm, lead.command), lead.x0)
-        n = int(round(cm.command_delay_s / traj.dt_s))
+        n = grid_steps(cm.command_delay_s, traj.dt_s) if cm.command_delay_s > 0 else 0
         if n <= 0:
             return cmd, lead
         m = 0 if lead is None else len(lead.command)
@@ -329,9 +332,14 @@ class Evaluator:
         full = np.concatenate([np.repeat(full[:1], min(n, len(full)), axis=0), full[:max(len(full) - n, 0)]])
         return full[m:], (lead if not m else replace(lead, command=full[:m]))
 
-    def actuators(self, traj, p, cm: CorrectedModel) -> np.ndarray:
+    def drive(self, traj, p, cm: CorrectedModel) -> tuple[np.ndarray, np.ndarray]:
+        """(actuator run, commands) of the corrected model along `traj`: the commands as timed
+        (`timed`), the run from `runs` (shared)."""
         cmd, lead = self.timed(traj, cm)
-        return self.runs.get(cmd, traj.dt_s, p, self.k, lead)
+        return self.runs.get(cmd, traj.dt_s, p, self.k, lead), cmd
+
+    def actuators(self, traj, p, cm: CorrectedModel) -> np.ndarray:
+        return self.drive(traj, p, cm)[0]
 
     def disturbance(self) -> tuple[np.ndarray, np.ndarray]:
         """(N, 6) smoothed generalised-force disturbance of the nominal model and its sd (N, N m)."""
@@ -341,8 +349,7 @@ class Evaluator:
     def residual(self, cm: CorrectedModel) -> np.ndarray:
         traj = self.trajectory(cm.correction)
         p = model.pack_params(cm.vehicle)
-        cmd, lead = self.timed(traj, cm)
-        act = self.runs.get(cmd, traj.dt_s, p, self.k, lead)
+        act, cmd = self.drive(traj, p, cm)
         acc = replay.model_acceleration(traj, act, p, command=cmd)
         dyn = replay.acceleration_residual(traj, act, p, acc)
         return np.column_stack([dyn, traj.kinematic])
@@ -536,6 +543,12 @@ def sandwich_sd(J: np.ndarray, r: np.ndarray, prior: np.ndarray, lag: int) -> np
         B += (1.0 - k / (lag + 1.0)) * (G + G.T)
     Ai = np.linalg.pinv(A)
     return np.sqrt(np.maximum(np.diag(Ai @ B @ Ai), 0.0))
+
+
+def grid_steps(seconds: float, dt: float) -> int:
+    """A duration in whole grid steps, halves rounded up, at least one (50 ms: 3 steps at 50 Hz,
+    1 at 25 Hz; round()'s half to even on a median dt 1e-16 off gave 2 or 3 at 50 Hz)."""
+    return max(1, int(seconds / dt + 0.5 + 1e-6))
 
 
 def grid_dt(ev) -> float:

@@ -662,9 +662,9 @@ def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: Co
     for label, cm in (("before", before), ("after", after)):
         tr = ev.trajectory(cm.correction)
         p = model.pack_params(cm.vehicle)
-        act = ev.actuators(tr, p, cm)
+        act, cmd = ev.drive(tr, p, cm)
         ext = extra if label == "after" else None
-        pred = (replay.shoot(tr, act, p, starts, n, substeps=2, command=ev.timed(tr, cm)[0], extra_force=ext,
+        pred = (replay.shoot(tr, act, p, starts, n, substeps=2, command=cmd, extra_force=ext,
                              mass_diag=mass_diag) if len(starts) else np.zeros((0, n, 10)))
         pred, meas = replay.predicted_vs_measured(traj, pred, starts, n, cm.vehicle, cm.correction)
         out[label] = pred

@@ -39,7 +39,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from onboard.vehicle import VehicleFileError
 
-from .candidates import grid_dt, parameter_scale, train_spacing_s
+from .candidates import grid_dt, grid_steps, parameter_scale, train_spacing_s
 
 ALPHA_FAMILY = 0.01
 ALPHA_RECORDING = 0.05
@@ -111,7 +111,6 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
     for c in cands:
         if c.effect == "imu_bias":
             continue
-        either = False  # several directions for one parameter, the larger statistic taken
         try:
             if c.n_params == 0:
                 cols = [ev.residual(c.apply((), ev.base)) - res0]
@@ -124,25 +123,6 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                 # finite differences below (the secant divided by zero: never testable).
                 theta0 = np.zeros(c.n_params)
                 cols = [(ev.residual(c.apply(c.x0, ev.base)) - res0) / float(c.x0[0])]
-            elif c.keys == (("sensors.delay", None),):
-                # the delay, two directions, the family's statistic the larger (the null draws
-                # calibrate that same maximum): the commands acting later by its step (whole
-                # grid steps, CorrectedModel.command_delay_s), the delay's effect on the dynamics
-                # without re-timing the sensor noise; and the secant of the delay itself, which
-                # re-times every stream. The secant alone differentiates the noise the
-                # disturbance shares: its null threshold stood 5-10x the other families' and
-                # true delays were named servo lag (dev 1500, 1584, 1599); the probe alone lost
-                # a 25 Hz ArduSub-rate delay the secant had found (dev 1543)
-                theta0 = np.asarray(c.x0, float)
-                # the step in whole grid steps, halves rounded up, at least one (50 ms: 60 ms at
-                # 50 Hz, 40 ms at 25 Hz, 100 ms at 10 Hz; round() on a median dt 1e-16 off gave 40
-                # or 60 ms at 50 Hz, half to even)
-                dt = grid_dt(ev)
-                h = max(1, int(c.step / dt + 0.5 + 1e-6)) * dt
-                th = theta0 + c.step if theta0[0] + c.step <= c.upper[0] else theta0 - c.step
-                cols = [(ev.residual(replace(ev.base, command_delay_s=h)) - res0) / h,
-                        (ev.residual(c.apply(th, ev.base)) - res0) / float(th[0] - theta0[0])]
-                either = True
             else:
                 theta0 = np.asarray(c.x0, float)
                 lo, hi = np.asarray(c.lower, float), np.asarray(c.upper, float)
@@ -153,6 +133,15 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                     th = theta0.copy()
                     th[j] = th[j] + d if th[j] + d <= hi[j] else max(th[j] - d, lo[j])
                     cols.append((ev.residual(c.apply(th, ev.base)) - res0) / (th[j] - theta0[j]))
+                if c.command_probe:
+                    # a second direction for the one parameter (a delay): the commands acting
+                    # later by its step in whole grid steps, what a delay does to the dynamics
+                    # without re-timing the sensor noise. The secant above alone differentiates
+                    # the noise the disturbance shares: its null threshold stood 5-10x the other
+                    # families' and true delays were named servo lag (dev 1500, 1584, 1599); the
+                    # probe alone lost a 25 Hz ArduSub-rate delay the secant finds (dev 1543)
+                    h = grid_steps(c.step, grid_dt(ev)) * grid_dt(ev)
+                    cols.append((ev.residual(replace(ev.base, command_delay_s=h)) - res0) / h)
         except (VehicleFileError, ZeroDivisionError):
             continue  # a candidate the vehicle cannot take is no evidence either way
         # what the candidate adds to the generalised force, per unit of its parameters: -M0 dr/dtheta
@@ -161,17 +150,15 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
         J_tr = np.nan_to_num(np.column_stack([(f[tr] * w[tr]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         J_ho = np.nan_to_num(np.column_stack([(f[ho] * w[ho]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         ref = reference_magnitude(c, vehicle)
-        if either:
+        if c.one_at_a_time or c.command_probe:
+            # one column at a time, the family's statistic the largest (the null draws calibrate
+            # that same maximum): each parameter of a one-at-a-time family, or the two directions
+            # of a probed one
             tests = [_regress(J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho) + (j,) for j in range(J_tr.shape[1])]
             S, drop, dth, sdp, j = max(tests, key=lambda t: t[0])
-            out.append(Score(c.effect, 1, S, drop, theta0 + dth, sdp, ref, (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho)))
-            continue
-        if c.one_at_a_time:  # each parameter alone; the family's statistic is the largest (the
-            # null draws calibrate that same maximum)
-            tests = [_regress(J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho) + ((j,),) for j in range(J_tr.shape[1])]
-            S, drop, dth, sdp, keep = max(tests, key=lambda t: t[0])
-            j = keep[0]
-            out.append(Score(c.effect, 1, S, drop, theta0[[j]] + dth, sdp, ref[[j]],
+            keep = (j,) if c.one_at_a_time else None
+            i = [j] if c.one_at_a_time else list(range(c.n_params))
+            out.append(Score(c.effect, 1, S, drop, theta0[i] + dth, sdp, ref[i],
                              (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho), keep))
             continue
         S, drop, dth, sdp = _regress(J_tr, J_ho, y_tr, y_ho)
