@@ -755,3 +755,29 @@ def test_a_four_second_pressure_glitch_names_nothing_on_a_perfect_recording(tmp_
     d = core.diagnose(rec, V)
     assert d.report["findings"] == [], d.report["findings"]
     assert d.report["mismatch"]["disturbance"]["outliers"] >= bad.sum() * 0.9
+
+
+def test_signal_nrmse_by_hand_and_a_stuck_sensor_is_left_out():
+    t = np.linspace(0.0, 2 * np.pi, 1000, endpoint=False)
+    ref = np.sin(t)  # RMS deviation 1/sqrt(2)
+    assert core.signal_nrmse(ref + 0.1, ref) == pytest.approx(0.1 * math.sqrt(2.0), rel=1e-12)
+    # a noise probe of variance 0.01 comes out of both: sqrt((0.02 - 0.01) / (0.5 - 0.01))
+    probe = np.full_like(t, 0.1)
+    err = np.full_like(t, math.sqrt(0.02))
+    assert core.signal_nrmse(ref + err, ref, probe) == pytest.approx(math.sqrt(0.01 / 0.49), rel=1e-12)
+    # a pressure sensor pinned at its limit: nothing but rounding moves (the adversary's 1.8e13)
+    stuck = 2.0 + 1e-15 * np.cos(7 * t)
+    assert math.isnan(core.signal_nrmse(stuck + 0.05, stuck))
+    assert math.isnan(core.signal_nrmse(ref + 0.1, ref, np.full_like(t, 1.0)))  # under its noise
+
+
+@pytest.mark.parametrize("nominal, hi", [(0.0, 0.5), (0.015, 0.5), (0.48, 0.78), (1.9, 2.2)])
+def test_the_delay_is_searched_past_the_vehicle_files_own_delay(nominal, hi):
+    c = next(c for c in candidates.candidates_for(V.with_values({"sensors.delay": nominal}))
+             if c.effect == "sensor_delay")
+    assert c.upper == pytest.approx((hi,)) and c.lower == (0.0,)
+    assert c.scan[0] == 0.0 and c.scan[-1] == pytest.approx(hi) and list(c.scan) == sorted(set(c.scan))
+    assert candidates.DELAY_SCAN_S[:-1] == c.scan[:len(candidates.DELAY_SCAN_S) - 1]  # the fixed points stay
+    if nominal > 0.2:  # points around the nominal value, 50 ms apart next to it
+        assert any(abs(x - (nominal + 0.05)) < 1e-9 for x in c.scan)
+        assert any(abs(x - (nominal - 0.05)) < 1e-9 for x in c.scan) or nominal - 0.05 <= 0.5

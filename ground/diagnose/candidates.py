@@ -188,6 +188,11 @@ def _vec(effect, kind, key, values, lo_f, hi_f, floor=0.0, switch=()):
                      tuple(max(x * hi_f, floor + 1e-3 * (1 + abs(x))) for x in vals), switch)
 
 
+DELAY_SCAN_S = (0.0, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5)  # the delay's scan (s)
+DELAY_REACH_S = 0.3  # ... which reaches this far past a nominal delay above 0.2 s
+DELAY_AROUND_S = (-0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.3)  # ... at these offsets from it
+
+
 def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
     """One candidate per effect id (missing if off in `v`, misestimated if on and it has
     parameters) and per misestimated physical parameter, IMU bias, sensor delay, thruster fault.
@@ -250,12 +255,16 @@ def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
     # the shared noise but its slope at 0 misses the hump below, and lost 1044 and 1056). The
     # training chi-square has a hump between 0 and 20 ms: least squares from the linear estimate
     # stopped at 5 ms against a truth of 52 (dev case 1044, then named servo lag), so its fit
-    # scans up to the bound (a 0.4 s delay beyond a scan to 0.3 s was named servo lag, an
-    # adversary's find) and refines the best point (`_scan_fit`)
+    # scans up to the bound and refines the best point (`_scan_fit`; a 0.4 s delay beyond a scan
+    # to 0.3 s was named servo lag, an adversary's find). A vehicle file may say up to 2 s: the
+    # bound and the scan then reach DELAY_REACH_S past its own value (a nominal 0.48 s sat at
+    # the 0.5 s bound, another adversary's find)
+    hi = max(0.5, s.delay + DELAY_REACH_S)
+    scan = sorted({*(x for x in DELAY_SCAN_S if x <= hi), *(x for x in s.delay + np.array(DELAY_AROUND_S)
+                                                             if 0.5 < x <= hi)})
     out.append(Candidate("sensor_delay", "misestimated" if s.delay > 0 else "missing",
-                         (("sensors.delay", None),), (s.delay,), (0.0,), (0.5,),
-                         step=0.05, scan=(0.0, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5),
-                         resolution=(0.01,), command_probe=True))
+                         (("sensors.delay", None),), (s.delay,), (0.0,), (hi,),
+                         step=0.05, scan=tuple(float(x) for x in scan), resolution=(0.01,), command_probe=True))
     # one degraded unit (a jet's thrust fraction in 0.05-1.5; a fixed two-way thruster's may be
     # negative: it pushes the wrong way), tested one unit at a time: four free scales would
     # mimic any common-mode thrust error (eval 216-315: the azimuth transient's thrust loss was

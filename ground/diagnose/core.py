@@ -643,6 +643,24 @@ def _unknown_term(ev, traj, vehicle, final, base_res, split):
                            f"explains {100 * min(max(frac, 0), 1):.0f} % of it on held-out data"}
 
 
+def signal_nrmse(pred: np.ndarray, ref: np.ndarray, noise: np.ndarray | None = None) -> float:
+    """NRMSE = RMS(pred - ref) / RMS(ref - mean ref) of one signal (spec/recording.md 2), with
+    `noise` (a probe of the white noise left in `ref`) taken out of both in quadrature. NaN, left
+    out of the total, when the signal does not move above its noise, or moves by less than a
+    millionth of its size (a saturated or stuck sensor: without that floor a pressure sensor
+    pinned at its limit divided by the rounding left in its variance, an adversary's held-out
+    NRMSE of 1.8e13)."""
+    m = np.asarray(ref, float).ravel()
+    if not m.size:
+        return float("nan")
+    var_sig = float(np.mean((m - m.mean()) ** 2))
+    mse = float(np.mean((np.asarray(pred, float).ravel() - m) ** 2))
+    noise_var = float(np.mean(np.asarray(noise, float) ** 2)) if noise is not None else 0.0
+    if not var_sig - noise_var > 1e-12 * float(np.mean(m ** 2)):
+        return float("nan")
+    return float(np.sqrt(max(mse - noise_var, 0.0) / (var_sig - noise_var)))
+
+
 def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: CorrectedModel,
                    extra=None, mass_diag=None) -> dict:
     """Held-out NRMSE per signal (and total) of multiple-shooting windows, before and after."""
@@ -684,14 +702,7 @@ def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: Co
         for tag, ref in (("", meas_s), ("_raw", meas)):
             nr = {}
             for j, s in enumerate(replay.SIGNALS):
-                m = ref[:, :, j].ravel()
-                e = (pred[:, :, j] - ref[:, :, j]).ravel()
-                var_sig = float(np.mean((m - m.mean()) ** 2)) if m.size else 0.0
-                mse = float(np.mean(e ** 2)) if m.size else 0.0
-                if tag == "":
-                    noise_var = float(np.mean(probe_s[:, :, j] ** 2)) if m.size else 0.0
-                    var_sig, mse = var_sig - noise_var, max(mse - noise_var, 0.0)
-                nr[s] = float(np.sqrt(mse / var_sig)) if var_sig > 0 else float("nan")
+                nr[s] = signal_nrmse(pred[:, :, j], ref[:, :, j], probe_s[:, :, j] if tag == "" else None)
             out[f"nrmse{tag}_{label}"] = nr
             vals = [v for v in nr.values() if math.isfinite(v)]
             out[f"total{tag}_{label}"] = float(np.mean(vals)) if vals else float("nan")
