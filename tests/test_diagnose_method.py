@@ -781,3 +781,36 @@ def test_the_delay_is_searched_past_the_vehicle_files_own_delay(nominal, hi):
     if nominal > 0.2:  # points around the nominal value, 50 ms apart next to it
         assert any(abs(x - (nominal + 0.05)) < 1e-9 for x in c.scan)
         assert any(abs(x - (nominal - 0.05)) < 1e-9 for x in c.scan) or nominal - 0.05 <= 0.5
+
+
+def test_a_family_tested_by_some_parameters_lists_the_others_by_name():
+    """Per parameter, decide.testable's rule: the damping family whose heave is determined but
+    whose surge and sway are not (sd 0.6 and 0.3 of their reference against the 0.5 cut) names
+    surge alone; a significant family, or one with every parameter determined, has no entry."""
+    c = next(c for c in candidates.candidates_for(V) if c.effect == "linear_damping")
+    ref = decide.reference_magnitude(c, V)
+    sd = ref * np.array([0.6, 0.3, 0.1, 0.2, 0.2, 0.2])
+    s = decide.Score("linear_damping", 6, 3.0, 0.0, np.asarray(c.x0), sd, ref)
+    cal = decide.Calibration(8, 1.0, {"linear_damping": 1.0}, {"linear_damping": 20.0}, 0.003, {}, {})
+    u = core._partly_untestable(c, s, cal)
+    assert u["effect"] == "linear_damping" and u["parameters"] == ["hydro.linear_damping[0]"]
+    assert u["reason"].startswith("hydro.linear_damping[0] (the family's other parameters are tested)")
+    assert "sd 0.6x" in u["reason"]
+    assert core._partly_untestable(c, dataclasses.replace(s, statistic=25.0), cal) is None  # significant
+    assert core._partly_untestable(c, dataclasses.replace(s, sd=ref * 0.4), cal) is None  # all determined
+    assert decide.testable(s, cal)  # the family as a whole stays testable (its heave is)
+
+
+def test_the_benchmark_counts_a_case_untestable_only_for_its_checked_parameter():
+    case = prove.Case("x", ("linear_damping",), check={"hydro.linear_damping[0]": 2.5})
+    part = lambda *names: {"effect": "linear_damping", "parameters": list(names), "reason": "r"}  # noqa: E731
+    assert prove._testable(case, [])
+    assert prove._testable(case, [part("hydro.linear_damping[2]")])
+    assert not prove._testable(case, [part("hydro.linear_damping[2]", "hydro.linear_damping[0]")])
+    assert not prove._testable(case, [{"effect": "linear_damping", "reason": "r"}])  # the whole family
+    assert prove._testable(case, [{"effect": "buoyancy", "reason": "r"}])
+    cur = prove.Case("c", ("current",), check={"environment.current": [0.04, -0.03, 0.0]})
+    horiz = {"effect": "current", "parameters": ["environment.current[0]", "environment.current[1]"], "reason": "r"}
+    assert not prove._testable(cur, [horiz])  # a vector key: any listed element covers it
+    free = prove.Case("t", ("thrust_inflow",))  # nothing checked: a listed family is untestable
+    assert not prove._testable(free, [{"effect": "thrust_inflow", "parameters": ["a"], "reason": "r"}])

@@ -88,6 +88,13 @@ class Candidate:
                        upper=pick(self.upper), one_at_a_time=False,
                        resolution=pick(self.resolution) if self.resolution else ())
 
+    def parameter_name(self, j: int) -> str:
+        """Parameter j as the report names it: its vehicle-file key, indexed (`hydro.added_mass[2]`)."""
+        key, idx = self.keys[j]
+        if key.startswith("thruster_fault."):
+            return f"thruster_fault.unit[{idx}].thrust_fraction"
+        return key if idx is None else f"{key}[{idx}]"
+
     def apply(self, theta, base: CorrectedModel) -> CorrectedModel:
         theta = np.asarray(theta, float)
         v = base.vehicle

@@ -183,6 +183,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     untestable = [{"effect": c.public, "kind": c.kind,
                    "reason": untestable_reason(c.effect, by_effect[c.effect], cal, traj, vehicle, rec)}
                   for c in cands if c.effect in skip]
+    untestable += [u for c in cands if c.effect not in skip
+                   for u in [_partly_untestable(c, by_effect[c.effect], cal)] if u is not None]
     if not over_ground:  # candidates_for: the horizontal current is not observable here
         untestable = _horizontal_current_untestable(untestable, next(c for c in cands if c.effect == "current"))
     for s in scores:
@@ -508,6 +510,29 @@ def _horizontal_current_untestable(untestable: list, current) -> list:
     return [u for u in untestable if u["effect"] != "current"] + [{
         "effect": "current", "kind": current.kind, "reason": why,
         "parameters": [f"environment.current[{i}]" for i in ((0, 1) if vertical is None else (0, 1, 2))]}]
+
+
+def _partly_untestable(cand, s, cal) -> dict | None:
+    """The untestable entry of a family tested by some of its parameters but not by all: not
+    significant, and the parameters whose calibrated sd exceeds half their smallest error worth
+    finding (decide.testable's rule, per parameter), by name. Without motion capture the surge
+    and sway damping hide behind the velocity the dynamics infer while the heave damping is
+    well determined (eval 1825, 1928: linear damping x1.1-1.4, statistic 0.04-0.16 of its
+    threshold): the family's verdict says nothing about the parameters the data do not excite."""
+    if cand.n_params < 2 or s.keep is not None or s.statistic > cal.threshold[s.effect]:
+        return None
+    rel = decide.calibrated_sd(s, cal) / np.maximum(np.asarray(s.reference, float), 1e-300)
+    if np.shape(rel) != (cand.n_params,):
+        return None
+    loose = [j for j in range(cand.n_params) if not rel[j] <= decide.HALF_WORTH_FINDING]
+    if not loose:
+        return None
+    worst = [float(rel[j]) for j in loose if np.isfinite(rel[j])]
+    span = f"{min(worst):.2g}" + (f"-{max(worst):.2g}" if max(worst) > min(worst) else "") if worst else ""
+    crb = f"Cramer-Rao sd {span}x the smallest error worth finding" if worst else "the recording carries no information on them"
+    names = [cand.parameter_name(j) for j in loose]
+    return {"effect": cand.public, "kind": cand.kind, "parameters": names,
+            "reason": f"{', '.join(names)} (the family's other parameters are tested): {crb}"}
 
 
 def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
