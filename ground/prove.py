@@ -668,7 +668,7 @@ def run_family_case(split: str, index: int, out_dir, reference: Vehicle | None =
         primary = case.expect[0]
         row["top1"] = bool(named) and named[0] == primary
         row["top2"] = primary in named[:2]
-        row["testable"] = _testable(case, rep.get("untestable", []))
+        row["testable"] = _testable(case, rep.get("untestable", []), nominal)
         perr = _param_error(case, findings)
         row["param_error"] = None if perr is None or not math.isfinite(perr) else round(perr, 4)
         row["within_3sd"] = _within_sd(case, findings, 3.0)
@@ -676,10 +676,11 @@ def run_family_case(split: str, index: int, out_dir, reference: Vehicle | None =
     return row
 
 
-def _testable(case: Case, untestable: list) -> bool:
+def _testable(case: Case, untestable: list, nominal: Vehicle | None = None) -> bool:
     """Whether the report can test the case's primary effect: not listed as untestable, or
     listed for parameters (a family tested by some of them) none of which the case checks
-    (`hydro.linear_damping[0]`, or a whole vector key, which any of its elements covers)."""
+    (`hydro.linear_damping[0]`; of a whole vector key, the elements whose true value differs
+    from the `nominal` vehicle's, or any element without it)."""
     primary = case.expect[0]
     for u in untestable:
         if u["effect"] != primary:
@@ -687,8 +688,17 @@ def _testable(case: Case, untestable: list) -> bool:
         names = u.get("parameters")
         if not names or not case.check:
             return False
-        for key in case.check:
-            if key in names or any(n.startswith(key + "[") for n in names):
+        for key, truth in case.check.items():
+            if key in names:
+                return False
+            moved = range(len(np.atleast_1d(truth)))
+            if nominal is not None and "[" not in key:
+                try:
+                    moved = np.flatnonzero(np.atleast_1d(np.asarray(truth, float))
+                                           != np.atleast_1d(np.asarray(nominal.get(key), float)))
+                except (AttributeError, KeyError, ValueError, TypeError):
+                    pass
+            if any(f"{key}[{i}]" in names for i in moved):
                 return False
     return True
 

@@ -769,18 +769,26 @@ def test_signal_nrmse_by_hand_and_a_stuck_sensor_is_left_out():
     stuck = 2.0 + 1e-15 * np.cos(7 * t)
     assert math.isnan(core.signal_nrmse(stuck + 0.05, stuck))
     assert math.isnan(core.signal_nrmse(ref + 0.1, ref, np.full_like(t, 1.0)))  # under its noise
+    small = 1e-4 * np.sin(t)  # a small motion that is real stays measured
+    assert core.signal_nrmse(small * 1.1, small) == pytest.approx(0.1, rel=1e-9)
+    assert core.signal_nrmse(np.where(t > 3, np.nan, ref), ref) == math.inf  # a diverged model: worst
 
 
-@pytest.mark.parametrize("nominal, hi", [(0.0, 0.5), (0.015, 0.5), (0.48, 0.78), (1.9, 2.2)])
+@pytest.mark.parametrize("nominal, hi", [(0.0, 0.5), (0.015, 0.5), (0.48, 0.78), (1.2, 1.5), (1.9, 2.0)])
 def test_the_delay_is_searched_past_the_vehicle_files_own_delay(nominal, hi):
+    """Up to 0.3 s past the file's own delay, never past the 2 s a file may say (a fitted value
+    must paste back), scanned every 0.1 s at most beyond 0.5 s and 50 ms either side of it."""
     c = next(c for c in candidates.candidates_for(V.with_values({"sensors.delay": nominal}))
              if c.effect == "sensor_delay")
     assert c.upper == pytest.approx((hi,)) and c.lower == (0.0,)
+    V.with_values({"sensors.delay": c.upper[0]})  # a vehicle file takes the bound
     assert c.scan[0] == 0.0 and c.scan[-1] == pytest.approx(hi) and list(c.scan) == sorted(set(c.scan))
-    assert candidates.DELAY_SCAN_S[:-1] == c.scan[:len(candidates.DELAY_SCAN_S) - 1]  # the fixed points stay
-    if nominal > 0.2:  # points around the nominal value, 50 ms apart next to it
+    assert c.scan[:len(candidates.DELAY_SCAN_S)] == candidates.DELAY_SCAN_S  # the fixed points stay
+    assert np.diff(c.scan).max() <= 0.1 + 1e-9
+    if 0.5 < nominal + 0.05 <= hi:  # (below 0.5 s the fixed points serve)
         assert any(abs(x - (nominal + 0.05)) < 1e-9 for x in c.scan)
-        assert any(abs(x - (nominal - 0.05)) < 1e-9 for x in c.scan) or nominal - 0.05 <= 0.5
+    if nominal - 0.05 > 0.5:
+        assert any(abs(x - (nominal - 0.05)) < 1e-9 for x in c.scan)
 
 
 def test_a_family_tested_by_some_parameters_lists_the_others_by_name():
@@ -811,6 +819,12 @@ def test_the_benchmark_counts_a_case_untestable_only_for_its_checked_parameter()
     assert prove._testable(case, [{"effect": "buoyancy", "reason": "r"}])
     cur = prove.Case("c", ("current",), check={"environment.current": [0.04, -0.03, 0.0]})
     horiz = {"effect": "current", "parameters": ["environment.current[0]", "environment.current[1]"], "reason": "r"}
-    assert not prove._testable(cur, [horiz])  # a vector key: any listed element covers it
+    assert not prove._testable(cur, [horiz])  # a vector key: any listed element covers it ...
+    vert = {"effect": "current", "parameters": ["environment.current[2]"], "reason": "r"}
+    assert not prove._testable(cur, [vert])
+    assert prove._testable(cur, [vert], V)  # ... that differs from the nominal's, when it is given
+    assert not prove._testable(cur, [horiz], V)
+    fault = prove.Case("f", ("thruster_fault",), check={"thruster_fault.unit[2].thrust_fraction": 0.5})
+    assert prove._testable(fault, [{"effect": "thruster_fault", "parameters": ["x"], "reason": "r"}], V)
     free = prove.Case("t", ("thrust_inflow",))  # nothing checked: a listed family is untestable
     assert not prove._testable(free, [{"effect": "thrust_inflow", "parameters": ["a"], "reason": "r"}])

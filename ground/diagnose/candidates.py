@@ -93,6 +93,8 @@ class Candidate:
         key, idx = self.keys[j]
         if key.startswith("thruster_fault."):
             return f"thruster_fault.unit[{idx}].thrust_fraction"
+        if key == CURVE_GAIN:  # internal: the table's rows carry it (`_curve_keys`)
+            return ("fixed_thruster.curve (forward)", "fixed_thruster.curve (reverse)")[idx]
         return key if idx is None else f"{key}[{idx}]"
 
     def apply(self, theta, base: CorrectedModel) -> CorrectedModel:
@@ -196,8 +198,9 @@ def _vec(effect, kind, key, values, lo_f, hi_f, floor=0.0, switch=()):
 
 
 DELAY_SCAN_S = (0.0, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5)  # the delay's scan (s)
-DELAY_REACH_S = 0.3  # ... which reaches this far past a nominal delay above 0.2 s
-DELAY_AROUND_S = (-0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.3)  # ... at these offsets from it
+DELAY_REACH_S = 0.3  # ... which reaches this far past a nominal delay above 0.2 s, every 0.1 s
+DELAY_AROUND_S = (-0.05, 0.0, 0.05)  # ... and at these offsets from it
+DELAY_MAX_S = 2.0  # never past what a vehicle file may say (onboard.vehicle: sensors.delay)
 
 
 def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
@@ -266,9 +269,9 @@ def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
     # to 0.3 s was named servo lag, an adversary's find). A vehicle file may say up to 2 s: the
     # bound and the scan then reach DELAY_REACH_S past its own value (a nominal 0.48 s sat at
     # the 0.5 s bound, another adversary's find)
-    hi = max(0.5, s.delay + DELAY_REACH_S)
-    scan = sorted({*(x for x in DELAY_SCAN_S if x <= hi), *(x for x in s.delay + np.array(DELAY_AROUND_S)
-                                                             if 0.5 < x <= hi)})
+    hi = min(max(0.5, s.delay + DELAY_REACH_S), DELAY_MAX_S)
+    beyond = [*np.arange(0.6, hi, 0.1), *(s.delay + np.array(DELAY_AROUND_S)), hi]
+    scan = sorted({*DELAY_SCAN_S, *(round(float(x), 6) for x in beyond if 0.5 < x <= hi)})
     out.append(Candidate("sensor_delay", "misestimated" if s.delay > 0 else "missing",
                          (("sensors.delay", None),), (s.delay,), (0.0,), (hi,),
                          step=0.05, scan=tuple(float(x) for x in scan), resolution=(0.01,), command_probe=True))
