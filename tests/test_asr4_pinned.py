@@ -3,7 +3,8 @@ recorded before fixed thrusters joined the model (issue 17).
 
 The expectations in tests/data/asr4_pinned.npz were written by `python tests/test_asr4_pinned.py
 --write` at commit 61eb1ba (before any model change for issue 17) and are compared exactly
-(np.array_equal, not a tolerance): a refactor that moves one rounding anywhere fails here.
+(np.array_equal, not a tolerance), the outputs that go through LAPACK aside (THROUGH_LAPACK): a
+refactor that moves one rounding anywhere else fails here.
 Regenerate only for a deliberate physics change of asr4, and say so in the commit.
 """
 
@@ -27,6 +28,13 @@ from onboard.pwm import command_to_pwm, pwm_to_command  # noqa: E402
 from onboard.vehicle import load_vehicle  # noqa: E402
 
 PINNED = Path(__file__).with_name("data") / "asr4_pinned.npz"
+# Outputs computed through LAPACK (the pseudo-inverse's SVD, the compensated allocation's dense
+# solves) are not reproducible bit for bit across machines: OpenBLAS picks its kernels by CPU,
+# and a fresh install on 2026-11-26 gave alloc_pinv 2.2e-16 and alloc_compensated 6.3e-13 off the
+# pin (of a largest entry of 83). They are compared to 1e-12 of their largest entry; everything
+# else exactly.
+THROUGH_LAPACK = ("alloc_pinv", "alloc_compensated")
+LAPACK_ATOL = 1e-12
 DT_CONTROL = 0.01
 
 
@@ -99,6 +107,11 @@ def test_asr4_outputs_are_bit_for_bit_those_pinned_before_issue_17():
     assert sorted(got) == sorted(want.files)
     for key in want.files:
         assert got[key].shape == want[key].shape, key
+        if key in THROUGH_LAPACK:
+            scale = float(np.nanmax(np.abs(want[key])))
+            assert np.allclose(got[key], want[key], rtol=0.0, atol=LAPACK_ATOL * scale, equal_nan=True), (
+                f"{key}: asr4 changed; max |diff| {np.nanmax(np.abs(got[key] - want[key])):.3g}")
+            continue
         assert np.array_equal(got[key], want[key]), (
             f"{key}: asr4 changed; max |diff| {np.nanmax(np.abs(got[key] - want[key])):.3g}")
 
