@@ -30,6 +30,12 @@ SUBCOMMANDS = {
 }
 
 
+# distributed's nanny sets these to 1 before a worker starts (pre-spawn-environ); OpenBLAS 0.3.31
+# started with threads rounds a mission's figures differently in the 10th digit, and limiting it
+# to one thread later does not undo that: only the environment before numpy's first import does
+SINGLE_THREAD_BLAS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     top = argparse.ArgumentParser(
@@ -45,6 +51,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     name = argv[0]
     module_name, help_text = SUBCOMMANDS[name]
+    if name == "campaign":  # BLAS started single-threaded, as Dask's nanny starts its workers
+        for var in SINGLE_THREAD_BLAS:  # (a serial run's table equals a cluster's, to the last digit)
+            os.environ.setdefault(var, "1")
     module = importlib.import_module(module_name)
     parser = argparse.ArgumentParser(prog=f"jetloop {name}", description=help_text)
     module.configure(parser)

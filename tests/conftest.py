@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
-import socket
+import os
+
+# BLAS started single-threaded, as Dask's nanny starts its workers and `jetloop campaign` its
+# serial runs (ground.cli.SINGLE_THREAD_BLAS): the campaign tests compare a serial run in this
+# process with a cluster's bit for bit, and OpenBLAS 0.3.31 started with threads rounds a
+# mission's figures differently in the 10th digit. Set before numpy is first imported
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import socket  # noqa: E402
 from pathlib import Path
 
-import pytest
+import pytest  # noqa: E402
 
-from onboard.vehicle import EFFECT_IDS, Vehicle, load_vehicle
+from onboard.vehicle import EFFECT_IDS, Vehicle, load_vehicle  # noqa: E402
 
 # The shared project tree (specs, reference vehicle, real ArduSub logs) stands beside the
 # repository, in every developer's checkout and in CI's fresh clone. Tests that read it fail,
