@@ -8,7 +8,9 @@ import os
 # serial runs (ground.cli.SINGLE_THREAD_BLAS): the campaign tests compare a serial run in this
 # process with a cluster's bit for bit, and OpenBLAS 0.3.31 started with threads rounds a
 # mission's figures differently in the 10th digit. Set before numpy is first imported
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+from ground.cli import SINGLE_THREAD_BLAS  # noqa: E402 (it imports no numpy)
+
+for _var in SINGLE_THREAD_BLAS:
     os.environ.setdefault(_var, "1")
 
 import socket  # noqa: E402

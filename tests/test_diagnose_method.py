@@ -792,9 +792,9 @@ def test_the_delay_is_searched_past_the_vehicle_files_own_delay(nominal, hi):
 
 
 def test_a_family_tested_by_some_parameters_lists_the_others_by_name():
-    """Per parameter, decide.testable's rule: the damping family whose heave is determined but
-    whose surge and sway are not (sd 0.6 and 0.3 of their reference against the 0.5 cut) names
-    surge alone; a significant family, or one with every parameter determined, has no entry."""
+    """Per parameter, decide.testable's rule: the damping family whose surge is not determined
+    (sd 0.6 of its reference against the 0.5 cut; sway 0.3, heave 0.1) names surge alone; a
+    significant family, or one with every parameter determined, has no entry."""
     c = next(c for c in candidates.candidates_for(V) if c.effect == "linear_damping")
     ref = decide.reference_magnitude(c, V)
     sd = ref * np.array([0.6, 0.3, 0.1, 0.2, 0.2, 0.2])
