@@ -526,10 +526,11 @@ def _partly_untestable(cand, s, cal) -> dict | None:
     threshold): the family's verdict says nothing about the parameters the data do not excite."""
     if cand.n_params < 2 or s.keep is not None or s.statistic > cal.threshold[s.effect]:
         return None  # (a one-at-a-time family, the thruster fault, is judged by its best unit only)
-    rel = decide.calibrated_sd(s, cal) / np.maximum(np.asarray(s.reference, float), 1e-300)
-    if np.shape(rel) != (cand.n_params,):
+    sd = decide.calibrated_sd(s, cal)
+    if np.shape(sd) != (cand.n_params,):
         return None
-    loose = [j for j in range(cand.n_params) if not rel[j] <= decide.HALF_WORTH_FINDING]
+    rel = sd / np.maximum(np.asarray(s.reference, float), 1e-300)
+    loose = [int(j) for j in np.flatnonzero(~decide.determined(sd, s.reference))]
     if not loose:
         return None
     worst = [float(rel[j]) for j in loose if np.isfinite(rel[j])]

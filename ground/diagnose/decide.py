@@ -285,7 +285,7 @@ def correction_size(cand, theta, vehicle, sd=None) -> float:
     d = np.abs(np.asarray(theta, float) - np.asarray(cand.x0, float))
     if sd is not None and np.shape(sd) == d.shape:
         sd = np.nan_to_num(np.asarray(sd, float), nan=np.inf)
-        d = d + np.where(sd <= HALF_WORTH_FINDING * ref, 2.0 * sd, 0.0)
+        d = d + np.where(determined(sd, ref), 2.0 * sd, 0.0)
     return float(np.max(d / ref))
 
 
@@ -301,12 +301,17 @@ def within_noise(cand, theta, sd) -> bool:
     return bool(np.all(np.nan_to_num(z, nan=0.0) < 1.0))
 
 
+def determined(sd, reference) -> np.ndarray:
+    """Per parameter: its sd is at most HALF_WORTH_FINDING of its reference magnitude (a NaN sd
+    is not determined). The one rule behind `testable`, a partly testable family's list
+    (core._partly_untestable) and the 2 sd of `correction_size`."""
+    ref = np.maximum(np.asarray(reference, float), 1e-300)
+    return np.asarray(sd, float) <= HALF_WORTH_FINDING * ref
+
+
 def testable(score: Score, cal: Calibration) -> bool:
     """False when the family is not significant and even its best-determined parameter's sd
     exceeds half its reference magnitude: its absence cannot be concluded."""
     if score.statistic > cal.threshold.get(score.effect, float("inf")):
         return True
-    sd = calibrated_sd(score, cal)
-    ref = np.maximum(np.asarray(score.reference, float), 1e-300)
-    rel = sd / ref
-    return bool(np.isfinite(rel).any() and np.nanmin(rel) <= HALF_WORTH_FINDING)
+    return bool(determined(calibrated_sd(score, cal), score.reference).any())
