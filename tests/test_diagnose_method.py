@@ -769,9 +769,22 @@ def test_signal_nrmse_by_hand_and_a_stuck_sensor_is_left_out():
     stuck = 2.0 + 1e-15 * np.cos(7 * t)
     assert math.isnan(core.signal_nrmse(stuck + 0.05, stuck))
     assert math.isnan(core.signal_nrmse(ref + 0.1, ref, np.full_like(t, 1.0)))  # under its noise
+    # moving beyond its noise by less than the noise itself (0.5 - 0.3 < 0.3): the estimated
+    # noise level's error would be the denominator (eval control 2163's yaw rate at 4.98)
+    assert math.isnan(core.signal_nrmse(ref + 0.1, ref, np.full_like(t, math.sqrt(0.3))))
+    assert core.signal_nrmse(ref + 0.1, ref, np.full_like(t, math.sqrt(0.2))) == pytest.approx(0.0)
     small = 1e-4 * np.sin(t)  # a small motion that is real stays measured
     assert core.signal_nrmse(small * 1.1, small) == pytest.approx(0.1, rel=1e-9)
     assert core.signal_nrmse(np.where(t > 3, np.nan, ref), ref) == math.inf  # a diverged model: worst
+
+
+def test_held_out_totals_compare_the_same_signals_before_and_after():
+    """A signal left out on one side is left out of both totals; a diverged one (inf) stays."""
+    b = {"gyro_z": 4.98, "roll": 0.3, "pitch": 0.1, "depth": math.nan}
+    a = {"gyro_z": math.nan, "roll": 0.6, "pitch": 0.2, "depth": 0.05}
+    assert core.paired_totals(b, a) == pytest.approx((0.2, 0.4), rel=1e-12)
+    assert core.paired_totals({"x": 0.2, "y": 0.4}, {"x": math.inf, "y": 0.1}) == (pytest.approx(0.3), math.inf)
+    assert all(math.isnan(v) for v in core.paired_totals({"x": math.nan}, {"x": 0.1}))
 
 
 @pytest.mark.parametrize("nominal, hi", [(0.0, 0.5), (0.015, 0.5), (0.48, 0.78), (1.2, 1.5), (1.9, 2.0)])
