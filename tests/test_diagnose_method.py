@@ -261,6 +261,41 @@ def test_calibration_recovers_the_scale_of_chi_square_draws():
         assert cal.threshold[f] == pytest.approx(max(cal.scale[f] * chi2.ppf(0.99, p), largest))
 
 
+def test_a_probed_family_is_calibrated_per_direction():
+    """The delay's two directions (secant, command probe) with null scales 20 and 1 (a chi2(1)
+    each): each direction its own scale; the recording's statistic is the larger S_k / c_k,
+    stated in the picked direction's units against c_k chi2_1^-1(1 - a / 2), never below the
+    null draws' largest normalised statistic. One scale for both (the secant's, the mean of the
+    max) had held a true 33 ms delay below its threshold (eval 2238)."""
+    rng = np.random.default_rng(5)
+
+    def delay(s_sec, s_probe):
+        parts = tuple(decide.Score("d", 1, float(v), 0.0, np.array([th]), np.ones(1)) for v, th in
+                      ((s_sec, 0.01), (s_probe, 0.03)))
+        return dataclasses.replace(max(parts, key=lambda q: q.statistic), parts=parts)
+
+    fams = ["d"] + [f"f{i}" for i in range(4)]
+    draws = [[delay(20.0 * rng.chisquare(1), rng.chisquare(1))]
+             + [decide.Score(f, 1, float(rng.chisquare(1)), 0.0, np.zeros(1), np.ones(1)) for f in fams[1:]]
+             for _ in range(2000)]
+    observed = [delay(60.0, 45.0)]  # 60 / 20 = 3 in the secant's units, 45 in the probe's
+    cal = decide.calibrate(draws, fams, observed)
+    assert cal.part["d"] == 1 and cal.looks["d"] == 2
+    assert cal.scale["d"] == pytest.approx(1.0, rel=0.1)
+    c = np.mean([[q.statistic for q in d[0].parts] for d in draws], axis=0)
+    largest = max(max(q.statistic / ck for q, ck in zip(d[0].parts, np.maximum(c, cal.pooled_scale))) for d in draws)
+    assert cal.threshold["d"] == pytest.approx(max(cal.scale["d"] * chi2.ppf(1 - cal.alpha_family / 2, 1),
+                                                   cal.scale["d"] * largest))
+    picked = decide.pick_part(observed[0], cal)
+    assert picked.statistic == 45.0 and picked.theta[0] == 0.03
+    assert picked.statistic > cal.threshold["d"]  # the max of the raw statistics (60) would have
+    assert 60.0 < max(s.statistic for d in draws for s in d if s.effect == "d")  # ... sat under its null
+    # an unprobed Score passes through; the confidence counts the two looks
+    assert decide.pick_part(draws[0][1], cal) is draws[0][1]
+    pv = chi2.sf(45.0 / cal.scale["d"], 1)
+    assert decide.confidence(picked, cal, 5) == pytest.approx(max(0.0, 1 - 5 * 2 * pv))
+
+
 def test_confidence_is_the_recording_level_probability():
     """At the threshold of 13 families (a = 5 % / 13) the confidence is 1 - 13 a = 0.95."""
     fams = [f"f{i}" for i in range(13)]

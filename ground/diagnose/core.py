@@ -179,7 +179,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         null_scores.append(decide.linear_scores(ev_b, cands, split_fit, res_b, vehicle)
                            + [decide.bias_score([e.traj0 for e in evs_b], vehicle)])
         _say(progress, f"null draw {b + 1}/{draws} ({time.perf_counter() - t0:.1f} s)")
-    cal = decide.calibrate(null_scores, families)
+    cal = decide.calibrate(null_scores, families, scores)
+    scores = [decide.pick_part(s, cal) for s in scores]  # a probed family: its calibrated direction
     by_effect = {s.effect: s for s in scores}
     skip = {c.effect for c in cands if not decide.testable(by_effect[c.effect], cal)}
     untestable = [{"effect": c.public, "kind": c.kind,

@@ -19,7 +19,11 @@ from the nominal model under this recording's commands, with its estimated senso
 family's null statistics give its scale c_j (S / c_j ~ chi2(p_j)): its own mean of S / p, not
 below the median of the families' scales. A family is significant when S_j > c_j chi2_p^-1(1 - a), with
 a = min(1 %, 5 % / families) (Bonferroni: at most 1 % false alarms per family, 5 % per
-recording), and never below the largest statistic of its null draws. The reported confidence is 1 - families x p_j, the recording-level probability that
+recording), and never below the largest statistic of its null draws. A family tested along
+several directions of one parameter (the delay: the secant and the command probe) has each
+direction calibrated on its own scale c_k, its statistic the largest S_k / c_k, compared with
+chi2_1^-1(1 - a / K) (Bonferroni over its K directions) and never below the null draws'
+largest. The reported confidence is 1 - families x p_j, the recording-level probability that
 so large a statistic is not a false alarm.
 
 Cramer-Rao: the covariance of theta is c_j (J^T J)^-1 (Fisher information of the weighted
@@ -62,6 +66,7 @@ class Score:
     reference: np.ndarray = field(default=None)  # magnitude worth detecting, per parameter
     design: tuple = field(default=None, repr=False)  # (J_tr, J_ho, y_tr, y_ho): weighted regression
     keep: tuple | None = None  # a one-at-a-time family: the candidate's parameters this score frees
+    parts: tuple = ()  # a probed family (the delay): one Score per direction, each calibrated on its own
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,8 @@ class Calibration:
     alpha_family: float
     null_max: dict  # effect -> largest null S seen
     theta_sd: dict = field(default_factory=dict)  # effect -> sd of the estimate over the null draws
+    part: dict = field(default_factory=dict)  # probed effect -> the direction the recording's test uses
+    looks: dict = field(default_factory=dict)  # probed effect -> its number of directions (Bonferroni)
 
 
 def reference_magnitude(cand, vehicle) -> np.ndarray:
@@ -155,11 +162,18 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
             # that same maximum): each parameter of a one-at-a-time family, or the two directions
             # of a probed one
             tests = [_regress(J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho) + (j,) for j in range(J_tr.shape[1])]
+            if c.command_probe:
+                # each direction its own Score, calibrated on its own null scale (`calibrate`):
+                # one shared scale was the secant's, which differentiates the noise, and held a
+                # true 33 ms delay (eval 2238, S 68 against 77) while the lags stood at 4
+                i = list(range(c.n_params))
+                parts = tuple(Score(c.effect, 1, S, drop, theta0[i] + dth, sdp, ref[i],
+                                    (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho)) for S, drop, dth, sdp, j in tests)
+                out.append(replace(max(parts, key=lambda t: t.statistic), parts=parts))
+                continue
             S, drop, dth, sdp, j = max(tests, key=lambda t: t[0])
-            keep = (j,) if c.one_at_a_time else None
-            i = [j] if c.one_at_a_time else list(range(c.n_params))
-            out.append(Score(c.effect, 1, S, drop, theta0[i] + dth, sdp, ref[i],
-                             (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho), keep))
+            out.append(Score(c.effect, 1, S, drop, theta0[[j]] + dth, sdp, ref[[j]],
+                             (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho), (j,)))
             continue
         S, drop, dth, sdp = _regress(J_tr, J_ho, y_tr, y_ho)
         out.append(Score(c.effect, max(c.n_params, 1), S, drop, theta0 + dth, sdp, ref, (J_tr, J_ho, y_tr, y_ho)))
@@ -221,26 +235,47 @@ def bias_score(trajs, vehicle) -> Score:
     return Score("imu_bias", 6, float(np.sum((b / sd) ** 2)), float("nan"), theta, sd, ref)
 
 
-def calibrate(null_scores: list[list[Score]], families: list[str]) -> Calibration:
-    """Per-family scale and threshold from the null draws (module doc)."""
+def calibrate(null_scores: list[list[Score]], families: list[str], observed: list[Score] = ()) -> Calibration:
+    """Per-family scale and threshold from the null draws (module doc). A probed family (Score.parts)
+    is calibrated per direction: each direction's own scale c_k, the family's statistic
+    T = max_k S_k / c_k against chi2_1^-1(1 - a / K) (Bonferroni over its K directions) and
+    never below the null draws' largest T; its scale and threshold are stated in the units of
+    the direction the `observed` recording's T picks (`pick_part`)."""
     n_fam = max(len(families), 1)
     alpha = min(ALPHA_FAMILY, ALPHA_RECORDING / n_fam)
     by: dict = {f: [] for f in families}
+    parts: dict = {f: [] for f in families}
     thetas: dict = {f: [] for f in families}
     p_of: dict = {}
     for draw in null_scores:
         for s in draw:
             if s.effect in by:
                 by[s.effect].append(s.statistic)
+                parts[s.effect].append(s.parts)
                 thetas[s.effect].append(np.asarray(s.theta, float))
                 p_of[s.effect] = s.n_params
     own_scale = {f: float(np.mean(vals)) / p_of[f] for f, vals in by.items() if vals}
     pooled = float(np.median(list(own_scale.values()))) if own_scale else 1.0
-    scale, thr, nmax = {}, {}, {}
+    scale, thr, nmax, pick, looks = {}, {}, {}, {}, {}
+    seen = {s.effect: s for s in observed}
     for f in families:
         vals = by.get(f, [])
         p = p_of.get(f, 1)
         own = own_scale.get(f, pooled)
+        k_parts = {len(ps) for ps in parts.get(f, [])}
+        if vals and len(k_parts) == 1 and min(k_parts) > 1:
+            K = k_parts.pop()
+            ck = np.maximum(np.mean([[q.statistic for q in ps] for ps in parts[f]], axis=0), max(pooled, 1e-6))
+            t_null = [max(q.statistic / c for q, c in zip(ps, ck)) for ps in parts[f]]
+            thetas[f] = [np.asarray(ps[int(np.argmax([q.statistic / c for q, c in zip(ps, ck)]))].theta, float)
+                         for ps in parts[f]]
+            obs = seen.get(f)
+            k = 0 if obs is None or len(obs.parts) != K else int(np.argmax([q.statistic / c for q, c in zip(obs.parts, ck)]))
+            pick[f], looks[f] = k, K
+            scale[f] = float(ck[k])
+            nmax[f] = float(ck[k] * max(t_null))
+            thr[f] = max(float(ck[k] * chi2_dist.ppf(1.0 - alpha / K, 1)), nmax[f])
+            continue
         # a family's own scale, not below the median family's: eight draws estimate a mean of
         # chi-square(1) to +-50 %, and a quiet family must not get a hair trigger
         c = max(own, pooled, 1e-6)
@@ -250,13 +285,22 @@ def calibrate(null_scores: list[list[Score]], families: list[str]) -> Calibratio
         # weighted sum of chi-square(1) has the heavier tail): never below the largest null value
         thr[f] = max(c * float(chi2_dist.ppf(1.0 - alpha, p)), nmax[f] if vals else 0.0)
     tsd = {f: np.std(np.array(v), axis=0, ddof=1) for f, v in thetas.items() if len(v) >= 2}
-    return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax, tsd)
+    return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax, tsd, pick, looks)
+
+
+def pick_part(score: Score, cal: Calibration) -> Score:
+    """A probed family's Score as its calibrated test uses it: the direction `calibrate` picked
+    (its statistic, step and design); any other Score unchanged."""
+    k = cal.part.get(score.effect)
+    if not score.parts or k is None or k >= len(score.parts):
+        return score
+    return score.parts[k]
 
 
 def confidence(score: Score, cal: Calibration, n_families: int) -> float:
     """1 - families x p-value of the calibrated statistic (recording-level, Bonferroni)."""
     c = cal.scale.get(score.effect, cal.pooled_scale)
-    pval = float(chi2_dist.sf(score.statistic / c, score.n_params))
+    pval = float(chi2_dist.sf(score.statistic / c, score.n_params)) * cal.looks.get(score.effect, 1)
     return max(0.0, 1.0 - n_families * pval)
 
 
