@@ -724,6 +724,22 @@ def test_a_significant_fit_that_removes_a_sliver_of_the_mismatch_is_no_finding(t
     assert "added_mass (its fit removes 1." in summary_text(rep) and "no finding" in summary_text(rep)
 
 
+def test_a_held_out_improvement_within_the_noise_of_the_fit_is_no_finding():
+    """Eval control 2180 (IMU-only, 120 s): an added mass passed its test (60.2 against 56.4) and
+    its fit removed all the held-out excess there was, a chi-square drop of 2.1: within the noise
+    of a six-parameter fit (Z_GATE sd of sqrt(12) = 8.7), no finding. The same fit with a drop
+    above that, or a one-parameter candidate above 2.5 sqrt(2), is one."""
+    am = next(c for c in core.candidates_for(V) if c.effect == "added_mass")
+    theta = np.array(am.x0) * np.array([1.5, 1.5, 1.4, 1, 1, 1])
+    sd = np.full(6, 1e-6)
+    why = core._too_small(am, theta, sd, 1.0, V, 2.1)
+    assert why == "its held-out improvement (chi2 -2.1) is within the noise of a 6-parameter fit"
+    assert core._too_small(am, theta, sd, 1.0, V, 8.6) and not core._too_small(am, theta, sd, 1.0, V, 8.8)
+    buoy = next(c for c in core.candidates_for(V) if c.effect == "buoyancy")
+    th = np.array(buoy.x0) * 1.02
+    assert core._too_small(buoy, th, np.full(1, 1e-9), 1.0, V, 3.5) and not core._too_small(buoy, th, np.full(1, 1e-9), 1.0, V, 3.6)
+
+
 def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
     from ground.diagnose.cli import summary_text
     from ground.diagnose.report import _page
