@@ -269,13 +269,13 @@ def test_a_probed_family_is_calibrated_per_direction():
     max) had held a true 33 ms delay below its threshold (eval 2238)."""
     rng = np.random.default_rng(5)
 
-    def delay(s_sec, s_probe):
-        parts = tuple(decide.Score("d", 1, float(v), 0.0, np.array([th]), np.ones(1)) for v, th in
-                      ((s_sec, 0.01), (s_probe, 0.03)))
+    def delay(s_sec, s_probe, th_sec=0.01, th_probe=0.03, sd=(1.0, 1.0)):
+        parts = tuple(decide.Score("d", 1, float(v), 0.0, np.array([th]), np.array([e]), np.array([0.02]))
+                      for v, th, e in ((s_sec, th_sec, sd[0]), (s_probe, th_probe, sd[1])))
         return dataclasses.replace(max(parts, key=lambda q: q.statistic), parts=parts)
 
     fams = ["d"] + [f"f{i}" for i in range(4)]
-    draws = [[delay(20.0 * rng.chisquare(1), rng.chisquare(1))]
+    draws = [[delay(20.0 * rng.chisquare(1), rng.chisquare(1), rng.normal(0, 0.02), rng.normal(0, 0.001))]
              + [decide.Score(f, 1, float(rng.chisquare(1)), 0.0, np.zeros(1), np.ones(1)) for f in fams[1:]]
              for _ in range(2000)]
     observed = [delay(60.0, 45.0)]  # 60 / 20 = 3 in the secant's units, 45 in the probe's
@@ -287,7 +287,25 @@ def test_a_probed_family_is_calibrated_per_direction():
     assert cal.threshold["d"] == pytest.approx(max(cal.scale["d"] * chi2.ppf(1 - cal.alpha_family / 2, 1),
                                                    cal.scale["d"] * largest))
     picked = decide.pick_part(observed[0], cal)
-    assert picked.statistic == 45.0 and picked.theta[0] == 0.03
+    assert picked.statistic == 45.0 and picked.theta[0] == 0.03 and picked.parts == observed[0].parts
+    # the bootstrap sd is the picked direction's own spread over the draws (not the winners' mix)
+    probe_th = [d[0].parts[1].theta[0] for d in draws]
+    assert cal.theta_sd["d"][0] == pytest.approx(np.std(probe_th, ddof=1), rel=1e-12)
+    assert cal.theta_sd["d"][0] == pytest.approx(0.001, rel=0.1)
+    # testability: the best-determined direction, each on its own scale and spread, whichever
+    # direction a control's noise picks (a review's find: the secant's sd alone said untestable)
+    quiet = delay(25.0, 0.1, sd=(0.01, 0.002))  # the secant wins the pick: 25/20 > 0.1/1
+    cq = decide.calibrate(draws, fams, [quiet])
+    q = decide.pick_part(quiet, cq)
+    assert cq.part["d"] == 0 and q.statistic < cq.threshold["d"]
+    assert not decide.determined(decide.calibrated_sd(q, cq), q.reference).any()  # the secant's sd
+    assert decide.testable(q, cq)  # ... but the probe's 0.002 (x1) is under half of 0.02
+    assert decide.best_sd(q, cq)[0] == pytest.approx(max(0.002 * math.sqrt(max(cq.part_scale["d"][1], 1.0)),
+                                                         np.std(probe_th, ddof=1)))
+    # a non-finite null statistic is left out, not a NaN threshold
+    bad = [[dataclasses.replace(delay(1.0, 1.0), statistic=math.nan)] + draws[0][1:]] + draws[:50]
+    cb = decide.calibrate(bad, fams, observed)
+    assert math.isfinite(cb.threshold["d"]) and math.isfinite(cb.scale["d"])
     assert picked.statistic > cal.threshold["d"]  # the max of the raw statistics (60) would have
     assert 60.0 < max(s.statistic for d in draws for s in d if s.effect == "d")  # ... sat under its null
     # an unprobed Score passes through; the confidence counts the two looks

@@ -279,7 +279,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # poorly known start can stand 10x the rest)
     chi2_w = chi2(res0_fit, split_fit, split_fit.holdout)[0]
     n_w = len(split_fit.holdout) * float(split_fit.neff[split_fit.active].sum())
-    null_w = float(np.median(null_chi2)) if null_chi2 else math.inf
+    null_fin = [c for c in null_chi2 if math.isfinite(c)]
+    null_w = float(np.median(null_fin)) if null_fin else math.inf
     gate_w = 2 * Z_GATE * math.sqrt(2.0 * n_w)
     _say(progress, f"held-out chi2 {c0_h:.0f} on {n_h:.0f} degrees of freedom (excess {excess0:.0f}, gate {gate_unknown:.0f}); "
                    f"on the fitting windows {chi2_w:.0f} against the null draws' median {null_w:.0f} (gate {gate_w:.0f})")
@@ -346,8 +347,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         # (together), after them otherwise (or when no held-out stretch can say). First whenever
         # named, it had come before the main effect in 3 of the 10 masked cases of eval
         # 1696-1995 whose second effect was named first (1741, 1854, 1947)
-        first = not chosen or _shoot_holdout(ev, traj, split, ev.base, _with_bias(ev.base, bias), None, mdiag)[
-            "total_after"] < _shoot_holdout(ev, traj, split, ev.base, final.model, None, mdiag)["total_after"]
+        if chosen:  # compared over the signals both keep (paired_totals)
+            alone, forces = paired_totals(
+                _shoot_holdout(ev, traj, split, ev.base, _with_bias(ev.base, bias), None, mdiag)["nrmse_after"],
+                _shoot_holdout(ev, traj, split, ev.base, final.model, None, mdiag)["nrmse_after"])
+        first = not chosen or alone < forces
         findings.insert(0 if first else len(findings), _bias_finding(bias, cal, n_fam))
     if unknown is not None:
         entry = {"effect": "unknown", "kind": "missing",
@@ -570,7 +574,7 @@ def _partly_untestable(cand, s, cal) -> dict | None:
 def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
     """Why the recording cannot test `effect`: a rule on the motion when one explains it, and the
     Cramer-Rao bound that decided it."""
-    sd = decide.calibrated_sd(s, cal)
+    sd = decide.best_sd(s, cal)
     rel = float(np.min(sd / np.maximum(s.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
     crb = (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding" if math.isfinite(rel)
            else "the recording carries no information on it")

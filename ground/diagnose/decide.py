@@ -80,6 +80,8 @@ class Calibration:
     theta_sd: dict = field(default_factory=dict)  # effect -> sd of the estimate over the null draws
     part: dict = field(default_factory=dict)  # probed effect -> the direction the recording's test uses
     looks: dict = field(default_factory=dict)  # probed effect -> its number of directions (Bonferroni)
+    part_scale: dict = field(default_factory=dict)  # probed effect -> each direction's scale c_k
+    part_sd: dict = field(default_factory=dict)  # probed effect -> each direction's bootstrap sd (or None)
 
 
 def reference_magnitude(cand, vehicle) -> np.ndarray:
@@ -237,10 +239,12 @@ def bias_score(trajs, vehicle) -> Score:
 
 def calibrate(null_scores: list[list[Score]], families: list[str], observed: list[Score] = ()) -> Calibration:
     """Per-family scale and threshold from the null draws (module doc). A probed family (Score.parts)
-    is calibrated per direction: each direction's own scale c_k, the family's statistic
-    T = max_k S_k / c_k against chi2_1^-1(1 - a / K) (Bonferroni over its K directions) and
-    never below the null draws' largest T; its scale and threshold are stated in the units of
-    the direction the `observed` recording's T picks (`pick_part`)."""
+    is calibrated per direction when the `observed` recording's score has the same directions:
+    each direction's own scale c_k, the family's statistic T = max_k S_k / c_k against
+    chi2_1^-1(1 - a / K) (Bonferroni over its K directions) and never below the null draws'
+    largest T; its scale, threshold and bootstrap sd are those of the direction the observed T
+    picks (`pick_part`), and every direction's scale and sd are kept for `testable`. A draw whose
+    statistic is not finite is left out of its family's calibration."""
     n_fam = max(len(families), 1)
     alpha = min(ALPHA_FAMILY, ALPHA_RECORDING / n_fam)
     by: dict = {f: [] for f in families}
@@ -249,31 +253,34 @@ def calibrate(null_scores: list[list[Score]], families: list[str], observed: lis
     p_of: dict = {}
     for draw in null_scores:
         for s in draw:
-            if s.effect in by:
+            if s.effect in by and math.isfinite(s.statistic):
                 by[s.effect].append(s.statistic)
-                parts[s.effect].append(s.parts)
+                if all(math.isfinite(q.statistic) for q in s.parts):
+                    parts[s.effect].append(s.parts)
                 thetas[s.effect].append(np.asarray(s.theta, float))
                 p_of[s.effect] = s.n_params
     own_scale = {f: float(np.mean(vals)) / p_of[f] for f, vals in by.items() if vals}
     pooled = float(np.median(list(own_scale.values()))) if own_scale else 1.0
-    scale, thr, nmax, pick, looks = {}, {}, {}, {}, {}
+    scale, thr, nmax, pick, looks, part_scale, part_sd = {}, {}, {}, {}, {}, {}, {}
     seen = {s.effect: s for s in observed}
     for f in families:
         vals = by.get(f, [])
         p = p_of.get(f, 1)
         own = own_scale.get(f, pooled)
-        k_parts = {len(ps) for ps in parts.get(f, [])}
-        if vals and len(k_parts) == 1 and min(k_parts) > 1:
-            K = k_parts.pop()
-            ck = np.maximum(np.mean([[q.statistic for q in ps] for ps in parts[f]], axis=0), max(pooled, 1e-6))
-            t_null = [max(q.statistic / c for q, c in zip(ps, ck)) for ps in parts[f]]
-            thetas[f] = [np.asarray(ps[int(np.argmax([q.statistic / c for q, c in zip(ps, ck)]))].theta, float)
-                         for ps in parts[f]]
-            obs = seen.get(f)
-            k = 0 if obs is None or len(obs.parts) != K else int(np.argmax([q.statistic / c for q, c in zip(obs.parts, ck)]))
+        obs = seen.get(f)
+        K = len(obs.parts) if obs is not None else 0
+        draws_k = [ps for ps in parts.get(f, []) if len(ps) == K]
+        if K > 1 and draws_k and all(math.isfinite(q.statistic) for q in obs.parts):
+            S = np.array([[q.statistic for q in ps] for ps in draws_k], float)  # (draws, K)
+            ck = np.maximum(S.mean(axis=0), max(pooled, 1e-6))
+            k = int(np.argmax([q.statistic / c for q, c in zip(obs.parts, ck)]))
             pick[f], looks[f] = k, K
+            part_scale[f] = ck
+            th = [np.array([np.asarray(ps[j].theta, float) for ps in draws_k]) for j in range(K)]
+            part_sd[f] = [np.std(t, axis=0, ddof=1) if len(t) >= 2 else None for t in th]
+            thetas[f] = list(th[k])
             scale[f] = float(ck[k])
-            nmax[f] = float(ck[k] * max(t_null))
+            nmax[f] = float(ck[k] * np.max(S / ck))
             thr[f] = max(float(ck[k] * chi2_dist.ppf(1.0 - alpha / K, 1)), nmax[f])
             continue
         # a family's own scale, not below the median family's: eight draws estimate a mean of
@@ -285,16 +292,17 @@ def calibrate(null_scores: list[list[Score]], families: list[str], observed: lis
         # weighted sum of chi-square(1) has the heavier tail): never below the largest null value
         thr[f] = max(c * float(chi2_dist.ppf(1.0 - alpha, p)), nmax[f] if vals else 0.0)
     tsd = {f: np.std(np.array(v), axis=0, ddof=1) for f, v in thetas.items() if len(v) >= 2}
-    return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax, tsd, pick, looks)
+    return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax, tsd, pick, looks, part_scale, part_sd)
 
 
 def pick_part(score: Score, cal: Calibration) -> Score:
     """A probed family's Score as its calibrated test uses it: the direction `calibrate` picked
-    (its statistic, step and design); any other Score unchanged."""
+    (its statistic, step and design), still carrying all its directions for `testable`; any
+    other Score unchanged."""
     k = cal.part.get(score.effect)
     if not score.parts or k is None or k >= len(score.parts):
         return score
-    return score.parts[k]
+    return replace(score.parts[k], parts=score.parts)
 
 
 def confidence(score: Score, cal: Calibration, n_families: int) -> float:
@@ -353,9 +361,26 @@ def determined(sd, reference) -> np.ndarray:
     return np.asarray(sd, float) <= HALF_WORTH_FINDING * ref
 
 
+def best_sd(score: Score, cal: Calibration) -> np.ndarray:
+    """The calibrated sd a family's testability is judged on: `calibrated_sd`, or for a probed
+    family the best-determined of its directions, each with its own scale and bootstrap sd
+    (a control's noise picks the direction, and the secant's sd alone had made the delay
+    untestable on one draw and testable on the next: a review's find)."""
+    ck, boots = cal.part_scale.get(score.effect), cal.part_sd.get(score.effect)
+    if not score.parts or ck is None or len(ck) != len(score.parts):
+        return calibrated_sd(score, cal)
+    sds = []
+    for q, c, boot in zip(score.parts, ck, boots):
+        crb = np.asarray(q.sd, float) * math.sqrt(max(float(c), 1.0))
+        sds.append(crb if boot is None or np.shape(boot) != np.shape(crb) else np.maximum(crb, boot))
+    rel = [float(np.nanmin(sd / np.maximum(np.asarray(score.reference, float), 1e-300)))
+           if np.isfinite(sd).any() else math.inf for sd in sds]
+    return sds[int(np.argmin(rel))]
+
+
 def testable(score: Score, cal: Calibration) -> bool:
     """False when the family is not significant and even its best-determined parameter's sd
     exceeds half its reference magnitude: its absence cannot be concluded."""
     if score.statistic > cal.threshold.get(score.effect, float("inf")):
         return True
-    return bool(determined(calibrated_sd(score, cal), score.reference).any())
+    return bool(determined(best_sd(score, cal), score.reference).any())
