@@ -448,8 +448,8 @@ def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float 
     value (decide.within_noise), removing under MIN_EXPLAINED of the held-out excess, or a
     held-out chi-square `drop` within the noise of a fit of its p parameters (not above Z_GATE
     sd of sqrt(2 p)): eval control 2180 had an added mass named on a drop of 2.1, all of the
-    held-out excess there was; the right findings of 84 re-diagnosed cases of block 1996-2295
-    dropped 140 or more."""
+    held-out excess there was; the right findings of 125 re-diagnosed cases of block 1996-2295
+    dropped 118 or more."""
     if decide.correction_size(cand, theta, vehicle, sd) < decide.HALF_WORTH_FINDING:
         return "its correction is under half the smallest error worth finding"
     if decide.within_noise(cand, theta, sd):
