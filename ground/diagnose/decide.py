@@ -315,8 +315,12 @@ def confidence(score: Score, cal: Calibration, n_families: int) -> float:
 def calibrated_sd(score: Score, cal: Calibration) -> np.ndarray:
     """The parameter's sd: the Cramer-Rao bound inflated by the calibrated scale (never shrunk
     below the bound), and not below the spread of the same estimate over the null draws."""
-    crb = score.sd * math.sqrt(max(cal.scale.get(score.effect, cal.pooled_scale), 1.0))
-    boot = cal.theta_sd.get(score.effect)
+    return _inflated(score.sd, cal.scale.get(score.effect, cal.pooled_scale), cal.theta_sd.get(score.effect))
+
+
+def _inflated(sd, scale: float, boot) -> np.ndarray:
+    """A Cramer-Rao sd inflated by a calibrated scale above one, not below a bootstrap sd (None: none)."""
+    crb = np.asarray(sd, float) * math.sqrt(max(float(scale), 1.0))
     return crb if boot is None or np.shape(boot) != np.shape(crb) else np.maximum(crb, boot)
 
 
@@ -369,10 +373,7 @@ def best_sd(score: Score, cal: Calibration) -> np.ndarray:
     ck, boots = cal.part_scale.get(score.effect), cal.part_sd.get(score.effect)
     if not score.parts or ck is None or len(ck) != len(score.parts):
         return calibrated_sd(score, cal)
-    sds = []
-    for q, c, boot in zip(score.parts, ck, boots):
-        crb = np.asarray(q.sd, float) * math.sqrt(max(float(c), 1.0))
-        sds.append(crb if boot is None or np.shape(boot) != np.shape(crb) else np.maximum(crb, boot))
+    sds = [_inflated(q.sd, c, boot) for q, c, boot in zip(score.parts, ck, boots)]
     rel = [float(np.nanmin(sd / np.maximum(np.asarray(score.reference, float), 1e-300)))
            if np.isfinite(sd).any() else math.inf for sd in sds]
     return sds[int(np.argmin(rel))]
