@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import types
 
 import numpy as np
 import pytest
@@ -152,8 +153,13 @@ def test_a_perfect_model_shows_no_delay_and_no_added_mass_in_the_linear_scores(t
     ev = Evaluator(rec, truth)
     res0 = ev.residual(ev.base)
     split = locate.make_split(ev.traj0, locate.noise_realisation(ev, res0))
-    cands = [c for c in candidates.candidates_for(truth) if c.effect in ("sensor_delay", "added_mass")]
+    cands = [c for c in candidates.candidates_for(truth)
+             if c.effect in ("sensor_delay", "added_mass", "thruster_fault")]
     got = {s.effect: s for s in decide.linear_scores(ev, cands, split, res0, truth)}
+    # the thruster fault is tested one unit at a time: a part per unit, each freeing its own
+    units = got["thruster_fault"].parts
+    assert [q.keep for q in units] == [(j,) for j in range(truth.n_jets)]
+    np.testing.assert_allclose([q.theta[0] for q in units], 1.0, atol=0.05)
     # 1.9 ms remain (6.5 before): a delay that is not a whole number of IMU samples leaves a
     # bias of a few ms in the perfect model's own linear step (3.5 ms with 15 ms at 100 Hz, 3.8
     # with 5 ms; none with 10 or 20 ms); the null draws carry it too, unexplained
@@ -312,6 +318,57 @@ def test_a_probed_family_is_calibrated_per_direction():
     assert decide.pick_part(draws[0][1], cal) is draws[0][1]
     pv = chi2.sf(45.0 / cal.scale["d"], 1)
     assert decide.confidence(picked, cal, 5) == pytest.approx(max(0.0, 1 - 5 * 2 * pv))
+
+
+def test_a_one_at_a_time_family_is_calibrated_per_unit():
+    """The thruster fault's four units, unit 3 barely driven (sd 0.5 against 0.01): each unit is
+    its own part. The family's statistic is the most likely unit's S (the largest), calibrated
+    on the null draws' same largest; a 25 % loss on unit 0 gets unit 0's own bootstrap spread
+    (before, the draws that unit 3 won set it: 0.3, and the fault, 41x its threshold, was
+    dropped as within its noise), and a quiet recording is testable whichever unit its noise
+    picks (a review's find)."""
+    rng = np.random.default_rng(1)
+    sd_unit = np.array([0.01, 0.01, 0.01, 0.5])
+
+    def fault(z, louder=(1.0, 1.0, 1.0, 1.0)):
+        parts = tuple(decide.Score("tf", 1, float(v * v * f), 1.0, np.array([1.0 + v * e]), np.array([e]),
+                                   np.array([0.2]), None, (j,)) for j, (v, e, f) in enumerate(zip(z, sd_unit, louder)))
+        return dataclasses.replace(max(parts, key=lambda q: q.statistic), parts=parts)
+
+    fams = ["tf"] + [f"f{i}" for i in range(5)]
+    others = [[decide.Score(f, 1, float(rng.chisquare(1)), 0.0, np.zeros(1), np.ones(1)) for f in fams[1:]]
+              for _ in range(400)]
+    zs = rng.standard_normal((400, 4))
+    draws = [[fault(z)] + o for z, o in zip(zs, others)]
+    loss = fault(np.array([-25.0, 0.3, -0.2, 0.1]))  # unit 0 at 0.75
+    cal = decide.calibrate(draws, fams, [loss])
+    got = decide.pick_part(loss, cal)
+    assert cal.part["tf"] == 0 and got.keep == (0,) and "tf" not in cal.looks
+    largest = [d[0].statistic for d in draws]  # each draw's largest unit
+    assert cal.scale["tf"] == pytest.approx(max(np.mean(largest), cal.pooled_scale))
+    assert cal.threshold["tf"] == pytest.approx(max(cal.scale["tf"] * chi2.ppf(1 - cal.alpha_family, 1), max(largest)))
+    unit0 = [d[0].parts[0].theta[0] for d in draws]
+    assert cal.theta_sd["tf"][0] == pytest.approx(np.std(unit0, ddof=1), rel=1e-12)
+    assert decide.calibrated_sd(got, cal)[0] == pytest.approx(0.01 * math.sqrt(cal.scale["tf"]), rel=0.15)
+    assert not decide.within_noise(types.SimpleNamespace(switch_on=False, n_params=1, x0=(1.0,)), got.theta,
+                                   decide.calibrated_sd(got, cal))
+    # a quiet recording whose noise picks the barely driven unit: its sd is 2.5x the reference,
+    # yet units 0-2 are determined, so the absence of a fault is concluded (testable)
+    quiet = fault(np.array([0.1, 0.05, 0.05, 0.2]))
+    cq = decide.calibrate(draws, fams, [quiet])
+    q = decide.pick_part(quiet, cq)
+    assert cq.part["tf"] == 3 and q.statistic < cq.threshold["tf"]
+    assert not decide.determined(decide.calibrated_sd(q, cq), q.reference).any()
+    assert decide.testable(q, cq)
+    # alternative models are picked by likelihood (the largest S), not by S / c_k as the delay's
+    # directions are: unit 0 with a null scale 4x the others' and S 50 (12.5 in its units) over
+    # unit 1's 40 (dev 2463: the normalised pick went to a quieter unit, added mass was named)
+    louder = (4.0, 1.0, 1.0, 1.0)
+    noisy = [[fault(z, louder)] + o for z, o in zip(zs, others)]
+    two = fault(np.array([-math.sqrt(50.0), math.sqrt(40.0), 0.1, 0.1]))
+    c2 = decide.calibrate(noisy, fams, [two])
+    assert c2.part["tf"] == 0 and c2.part_scale["tf"][0] == pytest.approx(4.0, rel=0.2)
+    assert decide.pick_part(two, c2).statistic == pytest.approx(50.0)
 
 
 def test_confidence_is_the_recording_level_probability():
@@ -848,12 +905,16 @@ def test_signal_nrmse_by_hand_and_a_stuck_sensor_is_left_out():
 
 
 def test_held_out_totals_compare_the_same_signals_before_and_after():
-    """A signal left out on one side is left out of both totals; a diverged one (inf) stays."""
+    """A signal left out on one side is left out of both totals; a corrected model that diverged
+    (inf after) stays worst; a signal on which the nominal diverged (inf before) is left out, so
+    a fit worse on every other signal cannot pass the held-out gate on it (a review's find)."""
     b = {"gyro_z": 4.98, "roll": 0.3, "pitch": 0.1, "depth": math.nan}
     a = {"gyro_z": math.nan, "roll": 0.6, "pitch": 0.2, "depth": 0.05}
     assert core.paired_totals(b, a) == pytest.approx((0.2, 0.4), rel=1e-12)
     assert core.paired_totals({"x": 0.2, "y": 0.4}, {"x": math.inf, "y": 0.1}) == (pytest.approx(0.3), math.inf)
     assert all(math.isnan(v) for v in core.paired_totals({"x": math.nan}, {"x": 0.1}))
+    before, after = core.paired_totals({"x": math.inf, "y": 0.1}, {"x": 5.0, "y": 3.0})
+    assert (before, after) == (pytest.approx(0.1), pytest.approx(3.0)) and not after < before
 
 
 @pytest.mark.parametrize("nominal, hi", [(0.0, 0.5), (0.015, 0.5), (0.48, 0.78), (1.2, 1.5), (1.9, 2.0)])

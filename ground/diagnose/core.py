@@ -180,7 +180,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                            + [decide.bias_score([e.traj0 for e in evs_b], vehicle)])
         _say(progress, f"null draw {b + 1}/{draws} ({time.perf_counter() - t0:.1f} s)")
     cal = decide.calibrate(null_scores, families, scores)
-    scores = [decide.pick_part(s, cal) for s in scores]  # a probed family: its calibrated direction
+    scores = [decide.pick_part(s, cal) for s in scores]  # a family with parts: its calibrated part
     by_effect = {s.effect: s for s in scores}
     skip = {c.effect for c in cands if not decide.testable(by_effect[c.effect], cal)}
     untestable = [{"effect": c.public, "kind": c.kind,
@@ -555,7 +555,7 @@ def _partly_untestable(cand, s, cal) -> dict | None:
     well determined (eval 1825, 1928: linear damping x1.1-1.4, statistic 0.04-0.16 of its
     threshold): the family's verdict says nothing about the parameters the data do not excite."""
     if cand.n_params < 2 or s.keep is not None or s.statistic > cal.threshold[s.effect]:
-        return None  # (a one-at-a-time family, the thruster fault, is judged by its best unit only)
+        return None  # (a one-at-a-time family, the thruster fault, is judged by its best-determined unit: decide.best_sd)
     sd = decide.calibrated_sd(s, cal)
     if np.shape(sd) != (cand.n_params,):
         return None
@@ -785,10 +785,13 @@ def _shoot_holdout(ev: Evaluator, traj, split, before: CorrectedModel, after: Co
 def paired_totals(before: dict, after: dict) -> tuple[float, float]:
     """(before, after) mean NRMSE over the same signals (spec/recording.md 2: the mean over the
     signals used): a signal left out of either (NaN: it did not move above its noise there, which
-    a sensor delay's re-timed reference can tip) is left out of both; inf (a diverged model)
-    stays. Eval control 2163 had the nominal's total 0.641 carried by a yaw rate at 4.98 that the
-    delayed fit's reference left out: 0.256 after, a 5 ms delay named on a perfect model."""
-    used = [s for s in before if not (math.isnan(before[s]) or math.isnan(after.get(s, math.nan)))]
+    a sensor delay's re-timed reference can tip) is left out of both. Eval control 2163 had the
+    nominal's total 0.641 carried by a yaw rate at 4.98 that the delayed fit's reference left
+    out: 0.256 after, a 5 ms delay named on a perfect model. A signal on which the nominal model
+    diverged (inf before) is left out too: any finite total would beat it, and a correction that
+    fits the other signals worse would pass the held-out gate (a review's find); a corrected
+    model that diverges (inf after) keeps its inf."""
+    used = [s for s in before if math.isfinite(before[s]) and not math.isnan(after.get(s, math.nan))]
     if not used:
         return float("nan"), float("nan")
     return float(np.mean([before[s] for s in used])), float(np.mean([after[s] for s in used]))

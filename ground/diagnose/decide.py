@@ -23,8 +23,11 @@ recording), and never below the largest statistic of its null draws. A family te
 several directions of one parameter (the delay: the secant and the command probe) has each
 direction calibrated on its own scale c_k, its statistic the largest S_k / c_k, compared with
 chi2_1^-1(1 - a / K) (Bonferroni over its K directions) and never below the null draws'
-largest. The reported confidence is 1 - families x p_j, the recording-level probability that
-so large a statistic is not a false alarm.
+largest. A family of alternative models (the thruster fault, one unit at a time) has the
+largest S_k, the most likely unit, as its statistic, calibrated on the null draws' same
+largest; each unit keeps its own scale and bootstrap spread. The reported confidence is
+1 - families x p_j, the recording-level probability that so large a statistic is not a false
+alarm.
 
 Cramer-Rao: the covariance of theta is c_j (J^T J)^-1 (Fisher information of the weighted
 residuals, inflated by the calibrated scale when it is above one); the reported sd is not below
@@ -66,7 +69,7 @@ class Score:
     reference: np.ndarray = field(default=None)  # magnitude worth detecting, per parameter
     design: tuple = field(default=None, repr=False)  # (J_tr, J_ho, y_tr, y_ho): weighted regression
     keep: tuple | None = None  # a one-at-a-time family: the candidate's parameters this score frees
-    parts: tuple = ()  # a probed family (the delay): one Score per direction, each calibrated on its own
+    parts: tuple = ()  # a family tested along K directions (the delay's two, the fault's units): one Score each
 
 
 @dataclass(frozen=True)
@@ -78,10 +81,10 @@ class Calibration:
     alpha_family: float
     null_max: dict  # effect -> largest null S seen
     theta_sd: dict = field(default_factory=dict)  # effect -> sd of the estimate over the null draws
-    part: dict = field(default_factory=dict)  # probed effect -> the direction the recording's test uses
-    looks: dict = field(default_factory=dict)  # probed effect -> its number of directions (Bonferroni)
-    part_scale: dict = field(default_factory=dict)  # probed effect -> each direction's scale c_k
-    part_sd: dict = field(default_factory=dict)  # probed effect -> each direction's bootstrap sd (or None)
+    part: dict = field(default_factory=dict)  # effect with parts -> the direction the recording's test uses
+    looks: dict = field(default_factory=dict)  # effect with parts -> its number of directions (Bonferroni)
+    part_scale: dict = field(default_factory=dict)  # effect with parts -> each direction's scale c_k
+    part_sd: dict = field(default_factory=dict)  # effect with parts -> each direction's bootstrap sd (or None)
 
 
 def reference_magnitude(cand, vehicle) -> np.ndarray:
@@ -160,22 +163,22 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
         J_ho = np.nan_to_num(np.column_stack([(f[ho] * w[ho]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         ref = reference_magnitude(c, vehicle)
         if c.one_at_a_time or c.command_probe:
-            # one column at a time, the family's statistic the largest (the null draws calibrate
-            # that same maximum): each parameter of a one-at-a-time family, or the two directions
-            # of a probed one
-            tests = [_regress(J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho) + (j,) for j in range(J_tr.shape[1])]
-            if c.command_probe:
-                # each direction its own Score, calibrated on its own null scale (`calibrate`):
-                # one shared scale was the secant's, which differentiates the noise, and held a
-                # true 33 ms delay (eval 2238, S 68 against 77) while the lags stood at 4
-                i = list(range(c.n_params))
-                parts = tuple(Score(c.effect, 1, S, drop, theta0[i] + dth, sdp, ref[i],
-                                    (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho)) for S, drop, dth, sdp, j in tests)
-                out.append(replace(max(parts, key=lambda t: t.statistic), parts=parts))
-                continue
-            S, drop, dth, sdp, j = max(tests, key=lambda t: t[0])
-            out.append(Score(c.effect, 1, S, drop, theta0[[j]] + dth, sdp, ref[[j]],
-                             (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho), (j,)))
+            # one column at a time, each its own Score (a part), calibrated on its own null scale
+            # with Bonferroni over the parts (`calibrate`): each parameter of a one-at-a-time
+            # family (`keep`: the one it frees), or the two directions of the delay. One
+            # shared scale was the secant's, which differentiates the noise, and held a true
+            # 33 ms delay (eval 2238, S 68 against 77) while the lags stood at 4; for the
+            # thruster fault's units it mixed the units' bootstrap spreads (a quiet unit's set
+            # a well-driven unit's sd) and calibrated the largest of K statistics as one
+            # chi-square(1) draw (a review's find)
+            parts = []
+            for j in range(J_tr.shape[1]):
+                i = [0] if c.command_probe else [j]  # the parameter column j moves
+                design = (J_tr[:, [j]], J_ho[:, [j]], y_tr, y_ho)
+                S, drop, dth, sdp = _regress(*design)
+                parts.append(Score(c.effect, 1, S, drop, theta0[i] + dth, sdp, ref[i], design,
+                                   None if c.command_probe else (j,)))
+            out.append(replace(max(parts, key=lambda t: t.statistic), parts=tuple(parts)))
             continue
         S, drop, dth, sdp = _regress(J_tr, J_ho, y_tr, y_ho)
         out.append(Score(c.effect, max(c.n_params, 1), S, drop, theta0 + dth, sdp, ref, (J_tr, J_ho, y_tr, y_ho)))
@@ -238,13 +241,16 @@ def bias_score(trajs, vehicle) -> Score:
 
 
 def calibrate(null_scores: list[list[Score]], families: list[str], observed: list[Score] = ()) -> Calibration:
-    """Per-family scale and threshold from the null draws (module doc). A probed family (Score.parts)
-    is calibrated per direction when the `observed` recording's score has the same directions:
-    each direction's own scale c_k, the family's statistic T = max_k S_k / c_k against
-    chi2_1^-1(1 - a / K) (Bonferroni over its K directions) and never below the null draws'
-    largest T; its scale, threshold and bootstrap sd are those of the direction the observed T
-    picks (`pick_part`), and every direction's scale and sd are kept for `testable`. A draw whose
-    statistic is not finite is left out of its family's calibration."""
+    """Per-family scale and threshold from the null draws (module doc). A family with parts
+    (Score.parts: the delay's directions, the thruster fault's units) is calibrated per
+    direction when the `observed` recording's score has the same directions: each direction's
+    own scale c_k, the family's statistic T = max_k S_k / c_k against chi2_1^-1(1 - a / K)
+    (Bonferroni over its K directions) and never below the null draws' largest T; its scale,
+    threshold and bootstrap sd are those of the direction picked (`pick_part`). Of alternative
+    models (parts with `keep`, the units) the largest S_k is picked and tested like any family
+    (the null draws' statistic is the same largest), with the picked unit's own bootstrap sd.
+    Every part's scale and sd are kept for `testable`. A draw whose statistic is not finite is
+    left out of its family's calibration."""
     n_fam = max(len(families), 1)
     alpha = min(ALPHA_FAMILY, ALPHA_RECORDING / n_fam)
     by: dict = {f: [] for f in families}
@@ -273,16 +279,31 @@ def calibrate(null_scores: list[list[Score]], families: list[str], observed: lis
         if K > 1 and draws_k and all(math.isfinite(q.statistic) for q in obs.parts):
             S = np.array([[q.statistic for q in ps] for ps in draws_k], float)  # (draws, K)
             ck = np.maximum(S.mean(axis=0), max(pooled, 1e-6))
-            k = int(np.argmax([q.statistic / c for q, c in zip(obs.parts, ck)]))
-            pick[f], looks[f] = k, K
-            part_scale[f] = ck
             th = [np.array([np.asarray(ps[j].theta, float) for ps in draws_k]) for j in range(K)]
+            part_scale[f] = ck
             part_sd[f] = [np.std(t, axis=0, ddof=1) if len(t) >= 2 else None for t in th]
-            thetas[f] = list(th[k])
-            scale[f] = float(ck[k])
-            nmax[f] = float(ck[k] * np.max(S / ck))
-            thr[f] = max(float(ck[k] * chi2_dist.ppf(1.0 - alpha / K, 1)), nmax[f])
-            continue
+            if obs.parts[0].keep is not None:
+                # alternative models (one unit each, `keep`): the most likely one, the largest
+                # raw S (the score statistic is each one's likelihood-ratio gain), is the
+                # family's statistic, tested as before on the null draws' same largest S (below);
+                # only its bootstrap sd is now its own unit's and testability its best-determined
+                # unit's (a review's find: the winners' mixed spread). Picked on S_k / c_k with
+                # Bonferroni over the units (the delay's rule), the fault went to a quieter unit
+                # and added mass was named over a 43 % thrust loss (dev 2463, also 2503), and
+                # with every unit's scale at the pooled floor the threshold rose 1.3x and held a
+                # true fault (dev 2480)
+                pick[f] = int(np.argmax([q.statistic for q in obs.parts]))
+                thetas[f] = list(th[pick[f]])
+            else:
+                # one parameter's directions (the delay's): each on its own scale, the statistic
+                # the largest S_k / c_k, Bonferroni over the K, never below the draws' largest
+                k = int(np.argmax([q.statistic / c for q, c in zip(obs.parts, ck)]))
+                pick[f], looks[f] = k, K
+                thetas[f] = list(th[k])
+                scale[f] = float(ck[k])
+                nmax[f] = float(ck[k] * np.max(S / ck))
+                thr[f] = max(float(ck[k] * chi2_dist.ppf(1.0 - alpha / K, 1)), nmax[f])
+                continue
         # a family's own scale, not below the median family's: eight draws estimate a mean of
         # chi-square(1) to +-50 %, and a quiet family must not get a hair trigger
         c = max(own, pooled, 1e-6)
@@ -296,9 +317,9 @@ def calibrate(null_scores: list[list[Score]], families: list[str], observed: lis
 
 
 def pick_part(score: Score, cal: Calibration) -> Score:
-    """A probed family's Score as its calibrated test uses it: the direction `calibrate` picked
-    (its statistic, step and design), still carrying all its directions for `testable`; any
-    other Score unchanged."""
+    """A family with parts: its Score as its calibrated test uses it, the direction `calibrate`
+    picked (its statistic, step, design and `keep`), still carrying all its directions for
+    `testable`; any other Score unchanged."""
     k = cal.part.get(score.effect)
     if not score.parts or k is None or k >= len(score.parts):
         return score
@@ -366,8 +387,8 @@ def determined(sd, reference) -> np.ndarray:
 
 
 def best_sd(score: Score, cal: Calibration) -> np.ndarray:
-    """The calibrated sd a family's testability is judged on: `calibrated_sd`, or for a probed
-    family the best-determined of its directions, each with its own scale and bootstrap sd
+    """The calibrated sd a family's testability is judged on: `calibrated_sd`, or for a family
+    with parts the best-determined of its directions, each with its own scale and bootstrap sd
     (a control's noise picks the direction, and the secant's sd alone had made the delay
     untestable on one draw and testable on the next: a review's find)."""
     ck, boots = cal.part_scale.get(score.effect), cal.part_sd.get(score.effect)
