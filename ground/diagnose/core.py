@@ -555,7 +555,7 @@ def _partly_untestable(cand, s, cal) -> dict | None:
     well determined (eval 1825, 1928: linear damping x1.1-1.4, statistic 0.04-0.16 of its
     threshold): the family's verdict says nothing about the parameters the data do not excite."""
     if cand.n_params < 2 or s.keep is not None or s.statistic > cal.threshold[s.effect]:
-        return None  # (a one-at-a-time family, the thruster fault, is judged by its best-determined unit: decide.best_sd)
+        return None  # (a one-at-a-time family, the thruster fault: its best-determined unit, decide.best_sd)
     sd = decide.calibrated_sd(s, cal)
     if np.shape(sd) != (cand.n_params,):
         return None

@@ -163,14 +163,13 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
         J_ho = np.nan_to_num(np.column_stack([(f[ho] * w[ho]).ravel() for f in F]), nan=0.0, posinf=0.0, neginf=0.0)
         ref = reference_magnitude(c, vehicle)
         if c.one_at_a_time or c.command_probe:
-            # one column at a time, each its own Score (a part), calibrated on its own null scale
-            # with Bonferroni over the parts (`calibrate`): each parameter of a one-at-a-time
-            # family (`keep`: the one it frees), or the two directions of the delay. One
-            # shared scale was the secant's, which differentiates the noise, and held a true
-            # 33 ms delay (eval 2238, S 68 against 77) while the lags stood at 4; for the
-            # thruster fault's units it mixed the units' bootstrap spreads (a quiet unit's set
-            # a well-driven unit's sd) and calibrated the largest of K statistics as one
-            # chi-square(1) draw (a review's find)
+            # one column at a time, each its own Score (a part, `calibrate`): each parameter of
+            # a one-at-a-time family (`keep`: the one it frees; the family's statistic is the
+            # largest, and each keeps its own bootstrap spread: mixed, a quiet unit's spread had
+            # set a well-driven unit's sd, a review's find), or the two directions of the delay,
+            # each on its own null scale (one shared scale was the secant's, which differentiates
+            # the noise, and held a true 33 ms delay, eval 2238, S 68 against 77, while the lags
+            # stood at 4)
             parts = []
             for j in range(J_tr.shape[1]):
                 i = [0] if c.command_probe else [j]  # the parameter column j moves
