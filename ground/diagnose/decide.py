@@ -177,7 +177,9 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                 S, drop, dth, sdp = _regress(*design)
                 parts.append(Score(c.effect, 1, S, drop, theta0[i] + dth, sdp, ref[i], design,
                                    None if c.command_probe else (j,)))
-            out.append(replace(max(parts, key=lambda t: t.statistic), parts=tuple(parts)))
+            # NaN-safe: a part the model could not evaluate never hides one that scores
+            out.append(replace(max(parts, key=lambda t: t.statistic if t.statistic == t.statistic else -math.inf),
+                               parts=tuple(parts)))
             continue
         S, drop, dth, sdp = _regress(J_tr, J_ho, y_tr, y_ho)
         out.append(Score(c.effect, max(c.n_params, 1), S, drop, theta0 + dth, sdp, ref, (J_tr, J_ho, y_tr, y_ho)))
