@@ -367,8 +367,35 @@ def test_a_one_at_a_time_family_is_calibrated_per_unit():
     noisy = [[fault(z, louder)] + o for z, o in zip(zs, others)]
     two = fault(np.array([-math.sqrt(50.0), math.sqrt(40.0), 0.1, 0.1]))
     c2 = decide.calibrate(noisy, fams, [two])
-    assert c2.part["tf"] == 0 and c2.part_scale["tf"][0] == pytest.approx(4.0, rel=0.2)
-    assert decide.pick_part(two, c2).statistic == pytest.approx(50.0)
+    assert c2.part["tf"] == 0 and decide.pick_part(two, c2).statistic == pytest.approx(50.0)
+    # one scale per unit for testability and the reported sd: the family's (a review's find:
+    # testability on each unit's own c_k, the report on the family's, disagreed for one unit)
+    assert np.allclose(c2.part_scale["tf"], c2.scale["tf"])
+    p2 = decide.pick_part(two, c2)
+    assert np.array_equal(decide.part_sds(p2, c2)[0], decide.calibrated_sd(p2, c2))
+    # a unit never driven is listed untestable by name, the family's other units tested
+    cand = types.SimpleNamespace(n_params=4, public="thruster_fault", kind="misestimated",
+                                 parameter_name=lambda j: f"unit[{j}]")
+    idle = core._partly_untestable(cand, q, cq)
+    assert idle["parameters"] == ["unit[3]"] and "other parameters are tested" in idle["reason"]
+    assert core._partly_untestable(cand, got, cal) is None  # significant: a finding, not a list
+    # a null draw whose estimate is not finite is left out of the spread (before: a NaN sd, and
+    # within_noise dropped the 25 % loss)
+    nan_draw = [[dataclasses.replace(d[0], parts=tuple(dataclasses.replace(q_, theta=np.array([math.nan]))
+                                                        for q_ in d[0].parts))] + d[1:] for d in draws[:3]]
+    cn = decide.calibrate(nan_draw + draws, fams, [loss])
+    gn = decide.pick_part(loss, cn)
+    assert np.isfinite(decide.calibrated_sd(gn, cn)).all()
+    assert cn.theta_sd["tf"][0] == pytest.approx(cal.theta_sd["tf"][0], rel=1e-12)
+    assert not decide.within_noise(types.SimpleNamespace(switch_on=False, n_params=1, x0=(1.0,)), gn.theta,
+                                   decide.calibrated_sd(gn, cn))
+
+
+def test_the_most_likely_part_is_nan_safe():
+    """A part the model could not evaluate (statistic NaN) never hides a unit that scores."""
+    parts = [decide.Score("tf", 1, v, 0.0, np.zeros(1), np.ones(1)) for v in (math.nan, 3.0, 7.0, math.nan)]
+    assert decide.most_likely(parts).statistic == 7.0
+    assert decide.most_likely(parts[:1]) is parts[0]  # nothing finite: the first, no error
 
 
 def test_confidence_is_the_recording_level_probability():

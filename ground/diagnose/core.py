@@ -553,14 +553,22 @@ def _partly_untestable(cand, s, cal) -> dict | None:
     finding (decide.testable's rule, per parameter), by name. Without motion capture the surge
     and sway damping hide behind the velocity the dynamics infer while the heave damping is
     well determined (eval 1825, 1928: linear damping x1.1-1.4, statistic 0.04-0.16 of its
-    threshold): the family's verdict says nothing about the parameters the data do not excite."""
-    if cand.n_params < 2 or s.keep is not None or s.statistic > cal.threshold[s.effect]:
-        return None  # (a one-at-a-time family, the thruster fault: its best-determined unit, decide.best_sd)
-    sd = decide.calibrated_sd(s, cal)
+    threshold): the family's verdict says nothing about the parameters the data do not excite.
+    The thruster fault's units likewise: one well-driven unit makes the family testable, and a
+    unit the pilot never drove is listed here (a review's find)."""
+    if cand.n_params < 2 or s.statistic > cal.threshold[s.effect]:
+        return None
+    if s.keep is not None:  # one unit at a time (the thruster fault): each unit's own sd
+        sds = decide.part_sds(s, cal)
+        if sds is None or len(sds) != cand.n_params:
+            return None
+        sd, ref = np.array([float(np.min(v)) for v in sds]), np.array([float(q.reference[0]) for q in s.parts])
+    else:
+        sd, ref = decide.calibrated_sd(s, cal), s.reference
     if np.shape(sd) != (cand.n_params,):
         return None
-    rel = sd / np.maximum(np.asarray(s.reference, float), 1e-300)
-    loose = [int(j) for j in np.flatnonzero(~decide.determined(sd, s.reference))]
+    rel = sd / np.maximum(np.asarray(ref, float), 1e-300)
+    loose = [int(j) for j in np.flatnonzero(~decide.determined(sd, ref))]
     if not loose:
         return None
     worst = [float(rel[j]) for j in loose if np.isfinite(rel[j])]

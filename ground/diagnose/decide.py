@@ -25,7 +25,7 @@ direction calibrated on its own scale c_k, its statistic the largest S_k / c_k, 
 chi2_1^-1(1 - a / K) (Bonferroni over its K directions) and never below the null draws'
 largest. A family of alternative models (the thruster fault, one unit at a time) has the
 largest S_k, the most likely unit, as its statistic, calibrated on the null draws' same
-largest; each unit keeps its own scale and bootstrap spread. The reported confidence is
+largest; each unit keeps its own bootstrap spread, on the family's scale. The reported confidence is
 1 - families x p_j, the recording-level probability that so large a statistic is not a false
 alarm.
 
@@ -177,13 +177,17 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                 S, drop, dth, sdp = _regress(*design)
                 parts.append(Score(c.effect, 1, S, drop, theta0[i] + dth, sdp, ref[i], design,
                                    None if c.command_probe else (j,)))
-            # NaN-safe: a part the model could not evaluate never hides one that scores
-            out.append(replace(max(parts, key=lambda t: t.statistic if t.statistic == t.statistic else -math.inf),
-                               parts=tuple(parts)))
+            out.append(replace(most_likely(parts), parts=tuple(parts)))
             continue
         S, drop, dth, sdp = _regress(J_tr, J_ho, y_tr, y_ho)
         out.append(Score(c.effect, max(c.n_params, 1), S, drop, theta0 + dth, sdp, ref, (J_tr, J_ho, y_tr, y_ho)))
     return out
+
+
+def most_likely(parts):
+    """The part with the largest statistic, NaN-safe: a part the model could not evaluate (NaN)
+    never hides one that scores (max() keeps a leading NaN: a review's find)."""
+    return max(parts, key=lambda t: t.statistic if math.isfinite(t.statistic) else -math.inf)
 
 
 def _regress(J_tr, J_ho, y_tr, y_ho):
@@ -249,8 +253,9 @@ def calibrate(null_scores: list[list[Score]], families: list[str], observed: lis
     (Bonferroni over its K directions) and never below the null draws' largest T; its scale,
     threshold and bootstrap sd are those of the direction picked (`pick_part`). Of alternative
     models (parts with `keep`, the units) the largest S_k is picked and tested like any family
-    (the null draws' statistic is the same largest), with the picked unit's own bootstrap sd.
-    Every part's scale and sd are kept for `testable`. A draw whose statistic is not finite is
+    (the null draws' statistic is the same largest), with the picked unit's own bootstrap sd;
+    every unit's sd is inflated by the family's scale. Every part's scale and sd are kept for
+    `testable` (`part_sds`). Null estimates that are not finite are left out of the spreads. A draw whose statistic is not finite is
     left out of its family's calibration."""
     n_fam = max(len(families), 1)
     alpha = min(ALPHA_FAMILY, ALPHA_RECORDING / n_fam)
@@ -282,7 +287,7 @@ def calibrate(null_scores: list[list[Score]], families: list[str], observed: lis
             ck = np.maximum(S.mean(axis=0), max(pooled, 1e-6))
             th = [np.array([np.asarray(ps[j].theta, float) for ps in draws_k]) for j in range(K)]
             part_scale[f] = ck
-            part_sd[f] = [np.std(t, axis=0, ddof=1) if len(t) >= 2 else None for t in th]
+            part_sd[f] = [_spread(t) for t in th]
             if obs.parts[0].keep is not None:
                 # alternative models (one unit each, `keep`): the most likely one, the largest
                 # raw S (the score statistic is each one's likelihood-ratio gain), is the
@@ -313,8 +318,21 @@ def calibrate(null_scores: list[list[Score]], families: list[str], observed: lis
         # matching the mean alone is lax when one direction dominates a p-parameter family (a
         # weighted sum of chi-square(1) has the heavier tail): never below the largest null value
         thr[f] = max(c * float(chi2_dist.ppf(1.0 - alpha, p)), nmax[f] if vals else 0.0)
-    tsd = {f: np.std(np.array(v), axis=0, ddof=1) for f, v in thetas.items() if len(v) >= 2}
+        if f in part_scale:  # alternative models (the units): each unit's sd on the scale its
+            # family is tested on, the one `calibrated_sd` reports (a review's find: testability
+            # on each unit's own scale and the reported sd on the family's disagreed for one unit)
+            part_scale[f] = np.full(len(part_scale[f]), c)
+    tsd = {f: sd for f, v in thetas.items() if v for sd in [_spread(v)] if sd is not None}
     return Calibration(len(null_scores), pooled, scale, thr, alpha, nmax, tsd, pick, looks, part_scale, part_sd)
+
+
+def _spread(thetas) -> np.ndarray | None:
+    """The bootstrap sd of an estimate over the null draws, from the draws where it is finite
+    (a review's find: one NaN estimate made the sd NaN and `within_noise` dropped a real
+    finding); None below two such draws."""
+    t = np.array([np.asarray(v, float) for v in thetas], float)
+    t = t[np.all(np.isfinite(t.reshape(len(t), -1)), axis=1)] if t.size else t
+    return np.std(t, axis=0, ddof=1) if len(t) >= 2 else None
 
 
 def pick_part(score: Score, cal: Calibration) -> Score:
@@ -387,17 +405,26 @@ def determined(sd, reference) -> np.ndarray:
     return np.asarray(sd, float) <= HALF_WORTH_FINDING * ref
 
 
-def best_sd(score: Score, cal: Calibration) -> np.ndarray:
-    """The calibrated sd a family's testability is judged on: `calibrated_sd`, or for a family
-    with parts the best-determined of its directions, each with its own scale and bootstrap sd
-    (a control's noise picks the direction, and the secant's sd alone had made the delay
-    untestable on one draw and testable on the next: a review's find)."""
+def part_sds(score: Score, cal: Calibration) -> list | None:
+    """A family with parts: each direction's (each unit's) calibrated sd, on the scale and with
+    the bootstrap sd `calibrate` kept for it (for the picked part the one `calibrated_sd`
+    reports); None for a family without parts."""
     ck, boots = cal.part_scale.get(score.effect), cal.part_sd.get(score.effect)
     if not score.parts or ck is None or len(ck) != len(score.parts):
+        return None
+    return [_inflated(q.sd, c, boot) for q, c, boot in zip(score.parts, ck, boots)]
+
+
+def best_sd(score: Score, cal: Calibration) -> np.ndarray:
+    """The calibrated sd a family's testability is judged on: `calibrated_sd`, or for a family
+    with parts the best-determined of its directions (`part_sds`; a control's noise picks the
+    direction, and the secant's sd alone had made the delay untestable on one draw and testable
+    on the next: a review's find)."""
+    sds = part_sds(score, cal)
+    if sds is None:
         return calibrated_sd(score, cal)
-    sds = [_inflated(q.sd, c, boot) for q, c, boot in zip(score.parts, ck, boots)]
-    rel = [float(np.nanmin(sd / np.maximum(np.asarray(score.reference, float), 1e-300)))
-           if np.isfinite(sd).any() else math.inf for sd in sds]
+    rel = [float(np.nanmin(sd / np.maximum(np.asarray(q.reference, float), 1e-300)))
+           if np.isfinite(sd).any() else math.inf for sd, q in zip(sds, score.parts)]
     return sds[int(np.argmin(rel))]
 
 
