@@ -791,6 +791,21 @@ def test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_named_first(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("index, named", [(2443, ["buoyancy", "added_mass"]), (2622, ["azimuth_transient", "sensor_delay"])])
+def test_a_masked_effect_is_named_second_by_the_second_pass(tmp_path, index, named):
+    """Eval 2443 and 2622 (dev data now), two effects each. 2443 (added mass x2.1 masked by
+    buoyancy, no motion capture): the added mass's pair share was 10.8 % of the buoyancy's
+    held-out drop, under the 15 % then asked. 2622 (the azimuth transient x2.0 masked by a
+    sensor delay, ArduSub rates): the delay was not among the first round's fits at all. Scored
+    again with the first finding in the model (core._second_pass: the smoother re-run on the
+    corrected vehicle), the second effect is significant, fitted in a pair and named second."""
+    row = prove.run_family_case("eval", index, tmp_path)
+    assert row["expect"] == sorted(named, key=row["expect"].index)
+    assert row["named"][:2] == named, row["named"]
+    assert row["nrmse_after"] < row["nrmse_before"]
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("index", [846, 1134, pytest.param(1044, marks=pytest.mark.xfail(
     strict=True, reason="a 52 ms delay at 100 Hz with motion capture: its statistic 7.3 against a threshold "
                         "of 81.3 at af2c18c (5.4 against 69.5 with the secant alone); found at 60 ms only "

@@ -16,10 +16,10 @@ import numpy as np
 
 from onboard import model
 from onboard.fixed import ardusub_directions
-from onboard.vehicle import Vehicle
+from onboard.vehicle import Vehicle, VehicleFileError
 
 from . import decide, locate, null, replay, sparse
-from .candidates import (CHANNEL_AXIS, CHANNELS, CorrectedModel, Evaluator, Fit, SegmentedEvaluator,
+from .candidates import (CHANNEL_AXIS, CHANNELS, Candidate, CorrectedModel, Evaluator, Fit, SegmentedEvaluator,
                          candidates_for, chi2, combine, fit)
 
 # Decision: calibrated thresholds per recording (decide.py); these shape the report.
@@ -28,7 +28,9 @@ SHOOT_S = 2.0  # multiple-shooting window length for the held-out NRMSE
 WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re-fly each from its start)
 RANK_TOP = 6  # significant candidates fitted nonlinearly to rank them
 RANK_TANGENT_FAILED = 2  # ... and the significant ones whose linear step did not carry to held-out data
-SECOND_MIN_GAIN = 0.15  # a second effect must add this share of the first one's held-out drop
+SECOND_MIN_GAIN = 0.10  # a second effect must add this share of the first one's held-out drop
+SECOND_MORE = 3  # second-pass candidates not fitted in the first round, by held-out drop, fitted in a pair
+SECOND_TANGENT_FAILED = 2  # ... and those whose step fails held out, by S / threshold
 LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn), at least
 LEAD_TAUS = 5.0  # ... and this many of the actuator subsystem's slowest time constants (lead_seconds)
 LEAD_MAX_S = 60.0
@@ -236,27 +238,27 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     if single:
         best = single[0]
         chosen, final = [best], best
-        # a second effect: the nested score test on top of the first (its own calibrated
-        # threshold) and a fair share of the first one's held-out improvement
+        # a second effect: the candidates scored again with the first finding in the model (the
+        # smoother re-run on the fitting windows, `_second_pass`; the first pass's nested score
+        # test when the first is not a vehicle the smoother takes), each significant one fitted
+        # in a pair with the first, and kept when its share of the pair is a fair part of the
+        # first one's held-out improvement
         best_pair = None
-        for other in single[1:]:
-            gain, _ = decide.joint_gain(by_effect[best.candidate.effect], by_effect[other.candidate.effect])
-            _say(progress, f"pair {best.candidate.effect}+{other.candidate.effect}: gain {gain:.1f} (threshold "
-                           f"{cal.threshold[other.candidate.effect]:.1f})")
-            if gain <= cal.threshold[other.candidate.effect]:
-                continue
-            pc = combine(best.candidate, other.candidate)
-            pf = fit(ev_fit, pc, split_fit, res0_fit, x0=tuple(best.theta) + tuple(other.theta))
-            if _too_small(other.candidate, pf.theta[best.candidate.n_params:],
-                          decide.calibrated_sd(by_effect[other.candidate.effect], cal), pf.explained - best.explained,
-                          vehicle, pf.delta_holdout - best.delta_holdout):
+        again = _second_pass(recs_w, leads, runs, best.model, cands, best.candidate.effect, split_fit, cal,
+                             res0_fit.shape)
+        for oc, start in _second_candidates(best, single[1:], by_effect, cands, cal, again, skip, progress):
+            sc = (again or by_effect)[oc.effect]  # its evidence: the second pass's score when there is one
+            pf = fit(ev_fit, combine(best.candidate, oc), split_fit, res0_fit, x0=tuple(best.theta) + tuple(start))
+            if _too_small(oc, pf.theta[best.candidate.n_params:], decide.calibrated_sd(sc, cal),
+                          pf.explained - best.explained, vehicle, pf.delta_holdout - best.delta_holdout):
                 continue  # the same rules as for a first finding, on its share of the pair
             if pf.delta_holdout - best.delta_holdout > SECOND_MIN_GAIN * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
-                best_pair = (pf, other)
+                best_pair = (pf, oc, sc)
         if best_pair is not None:
-            pf, other = best_pair
-            chosen, final = list(_split_pair(pf, best, other)), pf
+            pf, oc, sc = best_pair
+            chosen, final = list(_split_pair(pf, best, oc)), pf
+            by_effect = {**by_effect, oc.effect: sc}  # the second's confidence and sd from its own test
     fits = single
     # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
@@ -440,6 +442,63 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         "elapsed_s": round(time.perf_counter() - t_start, 2),
     }
     return Diagnosis(report, traj, res0, res1, windows, fits, shots, mdiag)
+
+
+def _second_pass(recs_w, leads, runs, cm: CorrectedModel, cands, first: str, split, cal, shape) -> dict | None:
+    """effect -> Score of every candidate but the `first` (and the IMU bias) scored again on the
+    fitting windows re-estimated with the first finding's corrected model `cm`: the smoother's
+    trajectory, its disturbance and the candidates' tangents are all of the corrected vehicle,
+    so what the first effect did to the state estimate (a fast transient the disturbance could
+    not follow) is no longer evidence for a second. None when `cm` is not a vehicle the smoother
+    takes (a thruster fault, a thrust-curve gain) or its windows come out on another grid.
+    The thresholds are the first pass's (the null draws of the nominal model): with the first
+    effect in the model, the rest of the recording is a null recording of nearly that vehicle."""
+    if cm.thrust_fraction is not None or cm.curve_gain is not None or cm.command_delay_s:
+        return None
+    c = cm.correction
+    try:
+        v2 = cm.vehicle.with_values({"sensors.gyro_bias": list(c.gyro_bias), "sensors.accel_bias": list(c.accel_bias),
+                                     "sensors.delay": float(c.delay_s)})
+        ev2 = SegmentedEvaluator([Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)])
+        res2 = ev2.residual(ev2.base)
+    except (VehicleFileError, replay.ReplayError):
+        return None
+    if res2.shape != shape:  # on another grid than the first pass: its split does not apply
+        return None
+    rest = [x for x in cands if x.effect not in (first, "imu_bias")]
+    return {q.effect: decide.pick_part(q, cal) for q in decide.linear_scores(ev2, rest, split, res2, v2)}
+
+
+def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, again: dict | None, skip,
+                       progress) -> list:
+    """(candidate, start) of the second effects worth a pair fit with the `best` first finding:
+    with the second pass (`_second_pass`), those significant on it, the ones already `fitted`
+    (the other first-round fits, from their own fit) and SECOND_MORE more by its held-out drop
+    (SECOND_TANGENT_FAILED by S / threshold of those whose tangent fails held out: a lag far from
+    its start), from its step, none the first round found not testable (`skip`); without it, the
+    `fitted` that pass the first pass's nested score test on top of the first (`decide.joint_gain`)."""
+    fe = best.candidate.effect
+    if again is None:
+        out = []
+        for o in fitted:
+            gain, _ = decide.joint_gain(by_effect[fe], by_effect[o.candidate.effect])
+            _say(progress, f"pair {fe}+{o.candidate.effect}: gain {gain:.1f} (threshold {cal.threshold[o.candidate.effect]:.1f})")
+            if gain > cal.threshold[o.candidate.effect]:
+                out.append((o.candidate, tuple(o.theta)))
+        return out
+    sig = {e: q for e, q in again.items() if q.statistic > cal.threshold[e] and e not in skip}
+    for e, q in again.items():
+        _say(progress, f"with {fe}: {e:18s} S = {q.statistic:10.1f}  threshold {cal.threshold[e]:8.1f}  held-out {q.holdout_drop:9.1f}")
+    out = [(o.candidate, tuple(o.theta)) for o in fitted if o.candidate.effect in sig]
+    new = [q for e, q in sig.items() if e not in {o.candidate.effect for o in fitted}]
+    more = (sorted((q for q in new if q.holdout_drop > 0), key=lambda q: -q.holdout_drop)[:SECOND_MORE]
+            + sorted((q for q in new if not q.holdout_drop > 0),
+                     key=lambda q: -q.statistic / cal.threshold[q.effect])[:SECOND_TANGENT_FAILED])
+    for q in more:
+        c = next(c for c in cands if c.effect == q.effect)
+        c = c.subset(q.keep) if q.keep is not None else c
+        out.append((c, tuple(np.clip(q.theta, c.lower, c.upper)) if c.n_params else ()))
+    return out
 
 
 def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float = math.inf) -> str:
@@ -632,12 +691,13 @@ def _with_bias(cm: CorrectedModel, bias) -> CorrectedModel:
         cm.correction, gyro_bias=tuple(bias.theta[:3]), accel_bias=tuple(bias.theta[3:])))
 
 
-def _split_pair(pf: Fit, a: Fit, b: Fit):
-    """The two findings of a pair fit: each with its share of the joint parameters."""
+def _split_pair(pf: Fit, a: Fit, cb: Candidate):
+    """The two findings of a pair fit (the first `a`, the second's candidate `cb`): each with its
+    share of the joint parameters."""
     na = a.candidate.n_params
     fa = Fit(a.candidate, pf.theta[:na], pf.chi2_train, pf.chi2_holdout, a.delta_holdout, a.explained,
              a.bic, a.per_channel, a.residual, a.model, None if pf.sd is None else pf.sd[:na])
-    fb = Fit(b.candidate, pf.theta[na:], pf.chi2_train, pf.chi2_holdout, pf.delta_holdout - a.delta_holdout,
+    fb = Fit(cb, pf.theta[na:], pf.chi2_train, pf.chi2_holdout, pf.delta_holdout - a.delta_holdout,
              pf.explained - a.explained, pf.bic - a.bic, pf.per_channel - a.per_channel, pf.residual, pf.model, None if pf.sd is None else pf.sd[na:])
     return fa, fb
 
