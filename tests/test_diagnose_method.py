@@ -373,6 +373,9 @@ def test_a_one_at_a_time_family_is_calibrated_per_unit():
     assert np.allclose(c2.part_scale["tf"], c2.scale["tf"])
     p2 = decide.pick_part(two, c2)
     assert np.array_equal(decide.part_sds(p2, c2)[0], decide.calibrated_sd(p2, c2))
+    # any unit's reported sd is its own (a second pass may score another unit than the picked one)
+    for j in range(4):
+        assert np.array_equal(decide.calibrated_sd(two.parts[j], c2), decide.part_sds(p2, c2)[j])
     # a unit never driven is listed untestable by name, the family's other units tested
     cand = types.SimpleNamespace(n_params=4, public="thruster_fault", kind="misestimated",
                                  parameter_name=lambda j: f"unit[{j}]")

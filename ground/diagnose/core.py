@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -29,6 +29,7 @@ WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re
 RANK_TOP = 6  # significant candidates fitted nonlinearly to rank them
 RANK_TANGENT_FAILED = 2  # ... and the significant ones whose linear step did not carry to held-out data
 SECOND_MIN_GAIN = 0.10  # a second effect must add this share of the first one's held-out drop
+SECOND_MIN_GAIN_NESTED = 0.15  # ... when it was tested on the first pass only (no second pass)
 SECOND_MORE = 3  # second-pass candidates not fitted in the first round, by held-out drop, fitted in a pair
 SECOND_TANGENT_FAILED = 2  # ... and those whose step fails held out, by S / threshold
 LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn), at least
@@ -235,6 +236,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         _say(progress, f"{f.candidate.effect} not named: {why}")
     chosen: list[Fit] = []
     final = None
+    second_test: dict = {}  # id(the second finding's Fit) -> (its Score, the first effect it was tested with)
     if single:
         best = single[0]
         chosen, final = [best], best
@@ -244,21 +246,28 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         # in a pair with the first, and kept when its share of the pair is a fair part of the
         # first one's held-out improvement
         best_pair = None
-        again = _second_pass(recs_w, leads, runs, best.model, cands, best.candidate.effect, split_fit, cal,
-                             res0_fit.shape)
-        for oc, start in _second_candidates(best, single[1:], by_effect, cands, cal, again, skip, progress):
+        _say(progress, f"scoring the candidates again with {best.candidate.effect} in the model")
+        again = _second_pass(recs_w, leads, runs, best.model, cands, best.candidate.effect, split_fit, cal)
+        share = SECOND_MIN_GAIN if again is not None else SECOND_MIN_GAIN_NESTED
+        for oc, start, alone in _second_candidates(best, single[1:], by_effect, cands, cal, again, skip, progress):
             sc = (again or by_effect)[oc.effect]  # its evidence: the second pass's score when there is one
+            if alone:  # not fitted in the first round: alone on top of the first (a scanned delay's
+                # scan does not survive `combine`), then in the pair from there
+                start = tuple(fit(ev_fit, oc, split_fit, res0_fit, base=best.model, x0=start).theta)
             pf = fit(ev_fit, combine(best.candidate, oc), split_fit, res0_fit, x0=tuple(best.theta) + tuple(start))
             if _too_small(oc, pf.theta[best.candidate.n_params:], decide.calibrated_sd(sc, cal),
                           pf.explained - best.explained, vehicle, pf.delta_holdout - best.delta_holdout):
                 continue  # the same rules as for a first finding, on its share of the pair
-            if pf.delta_holdout - best.delta_holdout > SECOND_MIN_GAIN * best.delta_holdout and (
+            if pf.delta_holdout - best.delta_holdout > share * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
                 best_pair = (pf, oc, sc)
         if best_pair is not None:
             pf, oc, sc = best_pair
             chosen, final = list(_split_pair(pf, best, oc)), pf
-            by_effect = {**by_effect, oc.effect: sc}  # the second's confidence and sd from its own test
+            # the second finding's confidence and sd are those of its own test, the second pass
+            # (only for it: the first round's table, the IMU bias's rank and a finding named
+            # alone after a rejected pair keep the first round's)
+            second_test[id(chosen[1])] = (sc, best.candidate.public if again is not None else None)
     fits = single
     # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
@@ -342,8 +351,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         named = {f.candidate.effect for f in chosen} | ({"imu_bias"} if bias_named else set())
         rejected = [e for e in dict.fromkeys(rejected) if e not in named]
     res1 = final_res
+    named_now = {f.candidate.effect for f in chosen}
     n_fam = len(families)
-    findings = [_finding(f, vehicle, by_effect.get(f.candidate.effect), cal, n_fam) for f in chosen]
+    findings = [_finding(f, vehicle, *second_test.get(id(f), (by_effect.get(f.candidate.effect), None)), cal=cal,
+                         n_fam=n_fam) for f in chosen]
     if bias_named:
         # the bias is listed first when its held-out NRMSE alone beats the forces named with it
         # (together), after them otherwise (or when no held-out stretch can say). First whenever
@@ -408,7 +419,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         "untestable": untestable,
         "rejected": rejected,
         "negligible": [{"effect": f.candidate.public, "kind": f.candidate.kind, "explained": round(f.explained, 4),
-                        "why": why} for f, why in small],
+                        "why": why} for f, why in small if f.candidate.effect not in named_now],
         "fit": {
             "holdout": {
                 "before": {"total": round(shots["total_before"], 4),
@@ -444,13 +455,13 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     return Diagnosis(report, traj, res0, res1, windows, fits, shots, mdiag)
 
 
-def _second_pass(recs_w, leads, runs, cm: CorrectedModel, cands, first: str, split, cal, shape) -> dict | None:
+def _second_pass(recs_w, leads, runs, cm: CorrectedModel, cands, first: str, split, cal) -> dict | None:
     """effect -> Score of every candidate but the `first` (and the IMU bias) scored again on the
     fitting windows re-estimated with the first finding's corrected model `cm`: the smoother's
     trajectory, its disturbance and the candidates' tangents are all of the corrected vehicle,
     so what the first effect did to the state estimate (a fast transient the disturbance could
     not follow) is no longer evidence for a second. None when `cm` is not a vehicle the smoother
-    takes (a thruster fault, a thrust-curve gain) or its windows come out on another grid.
+    takes (a thruster fault, a thrust-curve gain) or a window's re-estimate diverged.
     The thresholds are the first pass's (the null draws of the nominal model): with the first
     effect in the model, the rest of the recording is a null recording of nearly that vehicle."""
     if cm.thrust_fraction is not None or cm.curve_gain is not None or cm.command_delay_s:
@@ -459,23 +470,29 @@ def _second_pass(recs_w, leads, runs, cm: CorrectedModel, cands, first: str, spl
     try:
         v2 = cm.vehicle.with_values({"sensors.gyro_bias": list(c.gyro_bias), "sensors.accel_bias": list(c.accel_bias),
                                      "sensors.delay": float(c.delay_s)})
-        ev2 = SegmentedEvaluator([Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)])
+        evs2 = [Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)]
+        ev2 = SegmentedEvaluator(evs2)
         res2 = ev2.residual(ev2.base)
     except (VehicleFileError, replay.ReplayError):
         return None
-    if res2.shape != shape:  # on another grid than the first pass: its split does not apply
+    if any(e.traj0.estimate.divergences for e in evs2):  # a re-estimate gone astray is no evidence
         return None
     rest = [x for x in cands if x.effect not in (first, "imu_bias")]
-    return {q.effect: decide.pick_part(q, cal) for q in decide.linear_scores(ev2, rest, split, res2, v2)}
+    # a family of alternative models (the thruster fault's units): its most likely unit now, as
+    # its calibration's statistic is (decide.calibrate); the delay's direction as the first pass's
+    return {q.effect: replace(decide.most_likely(q.parts), parts=q.parts) if q.parts and q.parts[0].keep is not None
+            else decide.pick_part(q, cal) for q in decide.linear_scores(ev2, rest, split, res2, v2)}
 
 
 def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, again: dict | None, skip,
                        progress) -> list:
-    """(candidate, start) of the second effects worth a pair fit with the `best` first finding:
+    """(candidate, start, alone) of the second effects worth a pair fit with the `best` first finding:
     with the second pass (`_second_pass`), those significant on it, the ones already `fitted`
     (the other first-round fits, from their own fit) and SECOND_MORE more by its held-out drop
     (SECOND_TANGENT_FAILED by S / threshold of those whose tangent fails held out: a lag far from
-    its start), from its step, none the first round found not testable (`skip`); without it, the
+    its start), `alone` (fitted alone on top of the first before the pair: from the step where it
+    carries held out, else from the start, None), none the first round found not testable
+    (`skip`); without it, the
     `fitted` that pass the first pass's nested score test on top of the first (`decide.joint_gain`)."""
     fe = best.candidate.effect
     if again is None:
@@ -484,20 +501,20 @@ def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, aga
             gain, _ = decide.joint_gain(by_effect[fe], by_effect[o.candidate.effect])
             _say(progress, f"pair {fe}+{o.candidate.effect}: gain {gain:.1f} (threshold {cal.threshold[o.candidate.effect]:.1f})")
             if gain > cal.threshold[o.candidate.effect]:
-                out.append((o.candidate, tuple(o.theta)))
+                out.append((o.candidate, tuple(o.theta), False))
         return out
     sig = {e: q for e, q in again.items() if q.statistic > cal.threshold[e] and e not in skip}
     for e, q in again.items():
         _say(progress, f"with {fe}: {e:18s} S = {q.statistic:10.1f}  threshold {cal.threshold[e]:8.1f}  held-out {q.holdout_drop:9.1f}")
-    out = [(o.candidate, tuple(o.theta)) for o in fitted if o.candidate.effect in sig]
+    out = [(o.candidate, tuple(o.theta), False) for o in fitted if o.candidate.effect in sig]
     new = [q for e, q in sig.items() if e not in {o.candidate.effect for o in fitted}]
     more = (sorted((q for q in new if q.holdout_drop > 0), key=lambda q: -q.holdout_drop)[:SECOND_MORE]
             + sorted((q for q in new if not q.holdout_drop > 0),
                      key=lambda q: -q.statistic / cal.threshold[q.effect])[:SECOND_TANGENT_FAILED])
-    for q in more:
+    for q in more:  # from the step where it carries to held-out data (the first round's rule)
         c = next(c for c in cands if c.effect == q.effect)
         c = c.subset(q.keep) if q.keep is not None else c
-        out.append((c, tuple(np.clip(q.theta, c.lower, c.upper)) if c.n_params else ()))
+        out.append((c, tuple(np.clip(q.theta, c.lower, c.upper)) if c.n_params and q.holdout_drop > 0 else None, True))
     return out
 
 
@@ -702,7 +719,9 @@ def _split_pair(pf: Fit, a: Fit, cb: Candidate):
     return fa, fb
 
 
-def _finding(f: Fit, vehicle: Vehicle, score, cal, n_fam: int) -> dict:
+def _finding(f: Fit, vehicle: Vehicle, score, tested_with: str | None = None, *, cal, n_fam: int) -> dict:
+    """One finding of the report (spec/recording.md 2); `tested_with`: the first effect a second
+    finding's test had in the model (core._second_pass), reported as such."""
     c = f.candidate
     per = np.maximum(f.per_channel, 0.0)
     tot = per.sum()
@@ -741,6 +760,8 @@ def _finding(f: Fit, vehicle: Vehicle, score, cal, n_fam: int) -> dict:
         out["threshold"] = round(cal.threshold[c.effect], 1)
     if score is not None:
         out["confidence"] = round(decide.confidence(score, cal, n_fam), 3)
+    if tested_with:
+        out["tested_with"] = [tested_with]
     return out
 
 

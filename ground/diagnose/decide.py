@@ -354,8 +354,14 @@ def confidence(score: Score, cal: Calibration, n_families: int) -> float:
 
 def calibrated_sd(score: Score, cal: Calibration) -> np.ndarray:
     """The parameter's sd: the Cramer-Rao bound inflated by the calibrated scale (never shrunk
-    below the bound), and not below the spread of the same estimate over the null draws."""
-    return _inflated(score.sd, cal.scale.get(score.effect, cal.pooled_scale), cal.theta_sd.get(score.effect))
+    below the bound), and not below the spread of the same estimate over the null draws (of a
+    unit of a one-at-a-time family, that unit's own: the unit scored need not be the one the
+    calibration picked, as on a second pass)."""
+    boot = cal.theta_sd.get(score.effect)
+    units = cal.part_sd.get(score.effect)
+    if score.keep is not None and units is not None and len(score.keep) == 1 and score.keep[0] < len(units):
+        boot = units[score.keep[0]]
+    return _inflated(score.sd, cal.scale.get(score.effect, cal.pooled_scale), boot)
 
 
 def _inflated(sd, scale: float, boot) -> np.ndarray:
