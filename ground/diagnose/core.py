@@ -492,8 +492,8 @@ def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, aga
     (SECOND_TANGENT_FAILED by S / threshold of those whose tangent fails held out: a lag far from
     its start), `alone` (fitted alone on top of the first before the pair: from the step where it
     carries held out, else from the start, None), none the first round found not testable
-    (`skip`); without it, the
-    `fitted` that pass the first pass's nested score test on top of the first (`decide.joint_gain`)."""
+    (`skip`); without it, the `fitted` that pass the first pass's nested score test on top of
+    the first (`decide.joint_gain`)."""
     fe = best.candidate.effect
     if again is None:
         out = []

@@ -25,9 +25,9 @@ direction calibrated on its own scale c_k, its statistic the largest S_k / c_k, 
 chi2_1^-1(1 - a / K) (Bonferroni over its K directions) and never below the null draws'
 largest. A family of alternative models (the thruster fault, one unit at a time) has the
 largest S_k, the most likely unit, as its statistic, calibrated on the null draws' same
-largest; each unit keeps its own bootstrap spread, on the family's scale. The reported confidence is
-1 - families x p_j, the recording-level probability that so large a statistic is not a false
-alarm.
+largest; each unit keeps its own bootstrap spread, on the family's scale. The reported
+confidence is 1 - families x p_j, the recording-level probability that so large a statistic
+is not a false alarm.
 
 Cramer-Rao: the covariance of theta is c_j (J^T J)^-1 (Fisher information of the weighted
 residuals, inflated by the calibrated scale when it is above one); the reported sd is not below
@@ -255,8 +255,8 @@ def calibrate(null_scores: list[list[Score]], families: list[str], observed: lis
     models (parts with `keep`, the units) the largest S_k is picked and tested like any family
     (the null draws' statistic is the same largest), with the picked unit's own bootstrap sd;
     every unit's sd is inflated by the family's scale. Every part's scale and sd are kept for
-    `testable` (`part_sds`). Null estimates that are not finite are left out of the spreads. A draw whose statistic is not finite is
-    left out of its family's calibration."""
+    `testable` (`part_sds`). Null estimates that are not finite are left out of the spreads; a
+    draw whose statistic is not finite is left out of its family's calibration."""
     n_fam = max(len(families), 1)
     alpha = min(ALPHA_FAMILY, ALPHA_RECORDING / n_fam)
     by: dict = {f: [] for f in families}
