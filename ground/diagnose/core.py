@@ -198,22 +198,13 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                        f"  held-out {s.holdout_drop:9.1f}{'  (not testable)' if s.effect in skip else ''}")
     above = [s for s in scores if s.effect not in skip and s.statistic > cal.threshold[s.effect]]
     significant = [s for s in above if not (s.holdout_drop <= 0)]  # NaN (imu_bias) passes: it has no residual step
-    # --- the significant force candidates (at most RANK_TOP, by their linear held-out drop) fitted
-    # on the training blocks (candidates.fit: nonlinear least squares, or a scan for the delay)
-    pool = sorted((s for s in significant if s.effect != "imu_bias"), key=lambda s: -s.holdout_drop)[:RANK_TOP]
-    # above threshold, but the linear step fits worse on held-out data: the tangent at the start
-    # is the wrong shape (a lag far from its start value), not the effect absent; its nonlinear
-    # fit from the start decides
-    tangent_failed = sorted((s for s in above if s.holdout_drop < 0),
-                            key=lambda s: -s.statistic / cal.threshold[s.effect])[:RANK_TANGENT_FAILED]
+    # --- the significant force candidates fitted on the training blocks (candidates.fit: nonlinear
+    # least squares, or a scan for the delay; `_to_fit`)
     single: list[Fit] = []
     worse: list[str] = []  # significant, but the fit is not better held out: reported as rejected
     small: list[tuple] = []  # significant, but too small to name: (fit, why), reported as negligible
-    for s in pool + tangent_failed:
-        c = next(c for c in cands if c.effect == s.effect)
-        if s.keep is not None:  # a one-at-a-time family: the part its test chose
-            c = c.subset(s.keep)
-        x0 = tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params and s.holdout_drop > 0 else None
+    for s in _to_fit(above, cal, RANK_TOP, RANK_TANGENT_FAILED):
+        c, x0 = _start(s, cands)
         f = fit(ev_fit, c, split_fit, res0_fit, x0=x0)
         sd = decide.calibrated_sd(s, cal)
         size = decide.correction_size(c, f.theta, vehicle, sd)
@@ -351,7 +342,6 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         named = {f.candidate.effect for f in chosen} | ({"imu_bias"} if bias_named else set())
         rejected = [e for e in dict.fromkeys(rejected) if e not in named]
     res1 = final_res
-    named_now = {f.candidate.effect for f in chosen}
     n_fam = len(families)
     findings = [_finding(f, vehicle, *second_test.get(id(f), (by_effect.get(f.candidate.effect), None)), cal=cal,
                          n_fam=n_fam) for f in chosen]
@@ -419,7 +409,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         "untestable": untestable,
         "rejected": rejected,
         "negligible": [{"effect": f.candidate.public, "kind": f.candidate.kind, "explained": round(f.explained, 4),
-                        "why": why} for f, why in small if f.candidate.effect not in named_now],
+                        "why": why} for f, why in small if f.candidate.effect not in named],
         "fit": {
             "holdout": {
                 "before": {"total": round(shots["total_before"], 4),
@@ -489,9 +479,8 @@ def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, aga
     """(candidate, start, alone) of the second effects worth a pair fit with the `best` first finding:
     with the second pass (`_second_pass`), those significant on it, the ones already `fitted`
     (the other first-round fits, from their own fit) and SECOND_MORE more by its held-out drop
-    (SECOND_TANGENT_FAILED by S / threshold of those whose tangent fails held out: a lag far from
-    its start), `alone` (fitted alone on top of the first before the pair: from the step where it
-    carries held out, else from the start, None), none the first round found not testable
+    (SECOND_TANGENT_FAILED of those whose tangent fails held out, `_to_fit`), `alone` (fitted
+    alone on top of the first before the pair, from `_start`), none the first round found not testable
     (`skip`); without it, the `fitted` that pass the first pass's nested score test on top of
     the first (`decide.joint_gain`)."""
     fe = best.candidate.effect
@@ -508,14 +497,27 @@ def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, aga
         _say(progress, f"with {fe}: {e:18s} S = {q.statistic:10.1f}  threshold {cal.threshold[e]:8.1f}  held-out {q.holdout_drop:9.1f}")
     out = [(o.candidate, tuple(o.theta), False) for o in fitted if o.candidate.effect in sig]
     new = [q for e, q in sig.items() if e not in {o.candidate.effect for o in fitted}]
-    more = (sorted((q for q in new if q.holdout_drop > 0), key=lambda q: -q.holdout_drop)[:SECOND_MORE]
-            + sorted((q for q in new if not q.holdout_drop > 0),
-                     key=lambda q: -q.statistic / cal.threshold[q.effect])[:SECOND_TANGENT_FAILED])
-    for q in more:  # from the step where it carries to held-out data (the first round's rule)
-        c = next(c for c in cands if c.effect == q.effect)
-        c = c.subset(q.keep) if q.keep is not None else c
-        out.append((c, tuple(np.clip(q.theta, c.lower, c.upper)) if c.n_params and q.holdout_drop > 0 else None, True))
-    return out
+    return out + [(*_start(q, cands), True) for q in _to_fit(new, cal, SECOND_MORE, SECOND_TANGENT_FAILED)]
+
+
+def _to_fit(above, cal, top: int, failed: int) -> list:
+    """The significant force candidates (`above` their thresholds) worth a nonlinear fit: at most
+    `top` by their linear held-out drop, and at most `failed` of those whose linear step fits
+    worse on held-out data, by S / threshold (the tangent at the start has the wrong shape, a lag
+    far from its start value, not the effect absent: its nonlinear fit from the start decides)."""
+    forces = [s for s in above if s.effect != "imu_bias"]
+    return (sorted((s for s in forces if s.holdout_drop > 0), key=lambda s: -s.holdout_drop)[:top]
+            + sorted((s for s in forces if s.holdout_drop < 0),
+                     key=lambda s: -s.statistic / cal.threshold[s.effect])[:failed])
+
+
+def _start(s, cands) -> tuple:
+    """(candidate, x0) of a score's nonlinear fit: a one-at-a-time family's part its test chose,
+    from its linear step where the step carries to held-out data, else from the start (None)."""
+    c = next(c for c in cands if c.effect == s.effect)
+    if s.keep is not None:
+        c = c.subset(s.keep)
+    return c, (tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params and s.holdout_drop > 0 else None)
 
 
 def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float = math.inf) -> str:
