@@ -883,18 +883,19 @@ def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
     strict=True, reason="only depth is retried: fusing ATTITUDE or motion capture ungated after a second "
                         "(their yaw origins can differ for good) cost three right verdicts (estimate.GATE_RETRY_S)"))])
 def test_a_filter_gone_astray_comes_back_to_its_sensor(plain, axis, monkeypatch):
-    """Start the smoother 2 m off in depth (or 1 rad off in yaw, with little process noise on
-    the rotation) and a tight initial covariance: every innovation of that axis is beyond the
-    6-sigma gate. Gated forever, the estimate never came back (dev case 1195: 6.5 m of depth
-    drift over 60 s; a yaw gated while roll and pitch passed stayed 1.06 rad off, a reviewer's
-    find: the retry had one timer per kind, which the passing axes kept resetting). After
-    GATE_RETRY_S of gated-out innovations the depth is reset to the measurement (fused ungated
-    instead, it overshot and oscillated once the timeout was 5 s), so the estimate follows the
-    sensor from then on, and chunks shorter than the retry time give
-    the same answer (the timer is carried across them)."""
+    """Move every depth sample after the settling time 2 m (or start the smoother 1 rad off in
+    yaw, with little process noise on the rotation) with a tight velocity covariance: every
+    innovation of that axis from then on is beyond the 6-sigma gate. Gated forever, the estimate
+    never came back (dev case 1195: 6.5 m of depth drift over 60 s; a yaw gated while roll and
+    pitch passed stayed 1.06 rad off, a reviewer's find: the retry had one timer per kind, which
+    the passing axes kept resetting). After GATE_RETRY_S of gated-out innovations the depth is
+    reset to the measurement (fused ungated instead, it overshot and oscillated once the timeout
+    was 5 s), so the estimate follows the sensor from then on, and chunks shorter than the retry
+    time give the same answer (the timer is carried across them)."""
     t, p, cmd, act, meas, x0 = _smoother_inputs(plain, 30.0)
     if axis == "depth":
-        x0[estimate.I_POS + 2] += 2.0
+        moved = t > t[0] + 2.0 * estimate.SETTLE_S
+        meas = dataclasses.replace(meas, depth_m=np.where(moved, meas.depth_m + 2.0, meas.depth_m))
         noise, state = estimate.Noise(p0_vel_m_s=1e-3), estimate.I_POS + 2
         got = lambda est: est.x[:, state] - float(p[model.P_SURF])  # noqa: E731
         ok, want, tol = meas.depth_ok, meas.depth_m, 0.02
@@ -911,6 +912,23 @@ def test_a_filter_gone_astray_comes_back_to_its_sensor(plain, axis, monkeypatch)
     monkeypatch.setattr(estimate, "CHUNK", 80)  # 0.8 s at 100 Hz: shorter than the retry time
     chunked = estimate.smooth(meas, act, cmd, p, x0, noise)
     np.testing.assert_allclose(chunked.x, est.x, atol=1e-9)
+
+
+def test_a_start_far_off_in_depth_is_not_gated_while_the_filter_settles(plain):
+    """A smoother started from its generic prior has no converged estimate for the gate to guard:
+    depth is fused ungated for SETTLE_S. Gated from the first sample, a 10 s window's filter that
+    one accelerometer update had given a wrong vertical velocity with a small variance rejected
+    every depth sample for 5 s and drifted 0.3 m (dev case 2679, ArduSub rates): that window
+    inflated the heave channel's noise floor fivefold and hid a buoyancy error. Started 2 m off
+    with a tight velocity covariance, the estimate is on the sensor within the settling time,
+    with no sample gated out."""
+    t, p, cmd, act, meas, x0 = _smoother_inputs(plain, 12.0)
+    x0[estimate.I_POS + 2] += 2.0
+    est = estimate.smooth(meas, act, cmd, p, x0, estimate.Noise(p0_vel_m_s=1e-3))
+    after = meas.depth_ok & (t > t[0] + estimate.SETTLE_S) & (t < t[0] + estimate.GATE_RETRY_S)  # before any retry
+    err = est.x[after, estimate.I_POS + 2] - float(p[model.P_SURF]) - meas.depth_m[after]
+    assert est.outliers == 0
+    assert np.median(np.abs(err)) < 0.02, np.median(np.abs(err))
 
 
 @pytest.mark.slow

@@ -59,6 +59,14 @@ GATE_RETRY_S = 5.0  # ... unless it is depth and has not passed the gate for thi
 # capture can disagree for good (their yaw origins differ), and fusing such a kind ungated after
 # a second cost three right verdicts in the test suite (dev 1134, 884, a reversed BlueROV2
 # thruster); a yaw that has gone astray stays astray
+SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts from its generic prior
+# (a recording's or window's start, a segment after a gap): the gate guards a filter that has
+# converged against a glitching sensor, and a filter that has not has nothing to guard. Gated
+# from the first sample, one accelerometer update at a 10 s window's start (dev case 2679, one
+# extra-noise draw, ArduSub rates: w +0.5 m/s with sd 0.19 before the second depth sample) set a
+# wrong vertical velocity with a small variance, every depth innovation after it failed the gate
+# until the 5 s timeout, and the window's depth drifted 0.3 m: that one window inflated the heave
+# channel's noise floor fivefold for the whole recording and hid a buoyancy error in it
 
 # Measurement kinds, in the order of `Estimate.innovation_rms`.
 MEAS = ("gyro", "accel", "depth", "attitude", "mocap_pos", "mocap_att")
@@ -220,8 +228,8 @@ def _wrap(a):
 
 
 @njit(cache=True)
-def _scalar_update(x, P, H, z_minus_h, r, is_angle):
-    """One scalar Kalman update (P - P H H^T P / s), skipped beyond the gate;
+def _scalar_update(x, P, H, z_minus_h, r, is_angle, gate):
+    """One scalar Kalman update (P - P H H^T P / s), skipped beyond `gate` (normalised v^2);
     returns (nll term, used, normalised v^2)."""
     n = x.shape[0]
     PH = P @ H
@@ -229,9 +237,11 @@ def _scalar_update(x, P, H, z_minus_h, r, is_angle):
     for i in range(n):
         s += H[i] * PH[i]
     s += r
+    if not s > 0.0:  # the covariance has lost definiteness along H (a 2 Hz log's ungated start,
+        return 0.0, 0, 0.0  # real small.tlog): no update can be trusted through it
     v = _wrap(z_minus_h) if is_angle else z_minus_h
     z2 = v * v / s
-    if not math.isfinite(z2) or z2 > GATE_CHI2:
+    if not math.isfinite(z2) or z2 > gate:
         return 0.0, 0, 0.0
     for i in range(n):
         x[i] += PH[i] / s * v
@@ -243,7 +253,7 @@ def _scalar_update(x, P, H, z_minus_h, r, is_angle):
 
 @njit(cache=True)
 def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, att, att_ok,
-            mocap, mocap_ok, sig, surf, reset, p_reset, store, xs_f, Ps_f, xs_p, Ps_p, Fs,
+            mocap, mocap_ok, sig, surf, reset, seg_start, p_reset, store, xs_f, Ps_f, xs_p, Ps_p, Fs,
             nll, nsc, inno_ss, inno_n, since, k0):
     """Forward EKF over len(cmd) steps from (x0, P0); stores filter and prediction when `store`.
 
@@ -251,7 +261,8 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
     (act_next[k]: the actuator states at t_{k+1}).
     `since` (6, 3), updated in place: the step (k0 + k, counted from the recording's start, so
     chunks carry it) at which each measured axis's run of gated-out innovations began, -1 when
-    it passes (GATE_RETRY_S).
+    it passes (GATE_RETRY_S). `seg_start` (n,): the step (counted like `since`) at which each
+    row's segment began: depth is not gated within SETTLE_S of it.
     Returns the state and covariance predicted past the last row, and the outlier count.
     """
     n = cmd.shape[0]
@@ -268,6 +279,7 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
     outliers = 0
     resets = 0
     retry = int(math.ceil(GATE_RETRY_S / h))
+    settle = int(math.ceil(SETTLE_S / h))
     nsub = max(1, int(math.ceil(h / MAX_SUBSTEP_S - 1e-9)))  # slow IMUs: the model steps finer
     hs = h / nsub
     for k in range(n):
@@ -334,7 +346,8 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                     P[2, 2] = sig[kind] ** 2
                     since[kind, i] = -1
                     continue
-                ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle)
+                gate = math.inf if kind == 2 and k0 + k - seg_start[k] < settle else GATE_CHI2
+                ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle, gate)
                 if used:
                     since[kind, i] = -1
                 elif since[kind, i] < 0:
@@ -471,6 +484,8 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     checkpoints = []
     x, P = np.asarray(x0, float).copy(), P0
     since = np.full((6, 3), -1, np.int64)  # _filter: runs of gated-out innovations, across chunks
+    steps = np.arange(n)
+    seg_start = np.maximum.accumulate(np.where(meas.reset | (steps == 0), steps, 0))  # _filter: SETTLE_S
     outliers = resets = 0
 
     def stores(m):
@@ -485,7 +500,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
         keep = ci == len(starts) - 1
         st = stores(s1 - s0) if keep else (dummy2, dummy3, dummy2, dummy3, dummy3)
         x, P, o, r = _filter(x, P, act[sl], act_next[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
-                          meas.reset[sl], p_reset, keep, *st, nll[sl], nsc[sl], inno_ss, inno_n, since, s0)
+                          meas.reset[sl], seg_start[sl], p_reset, keep, *st, nll[sl], nsc[sl], inno_ss, inno_n, since, s0)
         outliers += o
         resets += r
         if keep:
@@ -504,7 +519,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
             xf, Pf, xp, Pp, Fs = stores(m)
             xc, Pc, sc = checkpoints[ci]
             _filter(xc, Pc, act[sl], act_next[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
-                    meas.reset[sl], p_reset, True, xf, Pf, xp, Pp, Fs, np.zeros(m), np.zeros(m, np.int64),
+                    meas.reset[sl], seg_start[sl], p_reset, True, xf, Pf, xp, Pp, Fs, np.zeros(m), np.zeros(m, np.int64),
                     np.zeros(len(MEAS)), np.zeros(len(MEAS), np.int64), sc.copy(), s0)
         P_next = _rts(xf, Pf, xp, Pp, Fs, x_next, P_next, xs[sl], stds[sl])
         x_next = xs[s0].copy()
