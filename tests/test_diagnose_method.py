@@ -399,6 +399,8 @@ def test_the_most_likely_part_is_nan_safe():
     parts = [decide.Score("tf", 1, v, 0.0, np.zeros(1), np.ones(1)) for v in (math.nan, 3.0, 7.0, math.nan)]
     assert decide.most_likely(parts).statistic == 7.0
     assert decide.most_likely(parts[:1]) is parts[0]  # nothing finite: the first, no error
+    strongest = decide.Score("tf", 1, math.inf, 0.0, np.zeros(1), np.ones(1))
+    assert decide.most_likely(parts + [strongest]) is strongest  # +inf is the strongest evidence, not none
 
 
 def test_confidence_is_the_recording_level_probability():

@@ -189,8 +189,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     untestable = [{"effect": c.public, "kind": c.kind,
                    "reason": untestable_reason(c.effect, by_effect[c.effect], cal, traj, vehicle, rec)}
                   for c in cands if c.effect in skip]
-    untestable += [u for c in cands if c.effect not in skip
-                   for u in [_partly_untestable(c, by_effect[c.effect], cal)] if u is not None]
+    # families tested by some parameters only (kept apart: a second finding may be named from them)
+    partly = [u for c in cands if c.effect not in skip for u in [_partly_untestable(c, by_effect[c.effect], cal)]
+              if u is not None]
     if not over_ground:  # candidates_for: the horizontal current is not observable here
         untestable = _horizontal_current_untestable(untestable, next(c for c in cands if c.effect == "current"))
     for s in scores:
@@ -259,7 +260,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             # (only for it: the first round's table, the IMU bias's rank and a finding named
             # alone after a rejected pair keep the first round's)
             second_test[id(chosen[1])] = (sc, best.candidate.public if again is not None else None)
-    fits = single
+    fits = chosen + [f for f in single if all(f is not c for c in chosen)]  # the report's plots: findings first
     # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
     bias_named = any(s.effect == "imu_bias" for s in significant) and (not chosen or bias.statistic / cal.threshold[
@@ -364,8 +365,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         findings.append(entry)  # after the calibrated findings (it is not calibrated)
     public = {c.effect: c.public for c in cands}
     kinds = {c.effect: c.kind for c in cands}
-    named = {f.candidate.effect for f in chosen}
-    rejected = list(dict.fromkeys(public.get(e, e) for e in rejected + [e for e in worse if e not in named]))
+    named = {f.candidate.public for f in chosen}  # by the name the report uses (a thrust curve is a thruster fault)
+    rejected = list(dict.fromkeys(e for e in (public.get(e, e) for e in rejected + worse) if e not in named))
+    # a second finding was tested on the second pass: not also listed partly untestable from the first
+    untestable = untestable + [u for u in partly if u["effect"] not in named]
     est = traj.estimate
     warnings = []
     if vehicle.fixed:  # what the motor directions read from the log cannot say
@@ -409,7 +412,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         "untestable": untestable,
         "rejected": rejected,
         "negligible": [{"effect": f.candidate.public, "kind": f.candidate.kind, "explained": round(f.explained, 4),
-                        "why": why} for f, why in small if f.candidate.effect not in named],
+                        "why": why} for f, why in small if f.candidate.public not in named | set(rejected)],
         "fit": {
             "holdout": {
                 "before": {"total": round(shots["total_before"], 4),
@@ -492,11 +495,17 @@ def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, aga
             if gain > cal.threshold[o.candidate.effect]:
                 out.append((o.candidate, tuple(o.theta), False))
         return out
-    sig = {e: q for e, q in again.items() if q.statistic > cal.threshold[e] and e not in skip}
+    public = {c.effect: c.public for c in cands}
+    # never the first's sibling that reports under the same name (a thrust curve after a thruster fault)
+    sig = {e: q for e, q in again.items()
+           if q.statistic > cal.threshold[e] and e not in skip and public[e] != best.candidate.public}
     for e, q in again.items():
         _say(progress, f"with {fe}: {e:18s} S = {q.statistic:10.1f}  threshold {cal.threshold[e]:8.1f}  held-out {q.holdout_drop:9.1f}")
-    out = [(o.candidate, tuple(o.theta), False) for o in fitted if o.candidate.effect in sig]
-    new = [q for e, q in sig.items() if e not in {o.candidate.effect for o in fitted}]
+    # a first-round fit is reused only for the part the second pass picks (a thruster fault's unit
+    # may change: unit 1's fit had been paired on unit 2's evidence, a review's find)
+    reuse = [o for o in fitted if o.candidate.effect in sig and sig[o.candidate.effect].keep == by_effect[o.candidate.effect].keep]
+    out = [(o.candidate, tuple(o.theta), False) for o in reuse]
+    new = [q for e, q in sig.items() if e not in {o.candidate.effect for o in reuse}]
     return out + [(*_start(q, cands), True) for q in _to_fit(new, cal, SECOND_MORE, SECOND_TANGENT_FAILED)]
 
 

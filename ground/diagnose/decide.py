@@ -186,8 +186,8 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
 
 def most_likely(parts):
     """The part with the largest statistic, NaN-safe: a part the model could not evaluate (NaN)
-    never hides one that scores (max() keeps a leading NaN: a review's find)."""
-    return max(parts, key=lambda t: t.statistic if math.isfinite(t.statistic) else -math.inf)
+    never hides one that scores (max() keeps a leading NaN: a review's find); +inf is the largest."""
+    return max(parts, key=lambda t: -math.inf if math.isnan(t.statistic) else t.statistic)
 
 
 def _regress(J_tr, J_ho, y_tr, y_ho):

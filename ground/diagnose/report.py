@@ -154,7 +154,7 @@ def write_html(diag, out_dir) -> Path:
 
     # 3. evidence per finding: what it explains vs the residual
     for k, f in enumerate(rep["findings"]):
-        fit = next((g for g in diag.fits if g.candidate.effect == f["effect"]), None)
+        fit = next((g for g in diag.fits if g.candidate.public == f["effect"]), None)
         if fit is None:
             continue
         fig, axs = plt.subplots(2, 1, figsize=(11, 5), sharex=True)
