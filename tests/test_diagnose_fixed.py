@@ -215,3 +215,48 @@ def test_scoring_windows_sit_where_the_thrusters_ran(with_vehicle, expect):
     assert len(w) == expect
     if with_vehicle:
         assert w[0][0] <= 903.7 <= w[-1][1] and all(900.7 - 20 <= a and b <= 915.7 + 20 for a, b in w)
+
+
+def test_second_candidates_skip_the_first_s_namesake_and_refit_a_moved_unit():
+    """The second effects worth a pair fit (core._second_candidates), with the real candidates of
+    the stock BlueROV2: a thrust curve reports as a thruster fault, so after a thruster fault it is
+    never paired (two findings of one name), on the second pass or on the nested fallback; a
+    thruster fault fitted on unit 2 in the first round whose second-pass evidence moved to unit 3
+    is fitted again on unit 3, not paired from unit 2's fit on unit 3's statistic (a review's
+    find: unit 1 at S 2.1 under its threshold of 5.1 had been paired on unit 2's 342)."""
+    from ground.diagnose import core, decide
+    from ground.diagnose.candidates import Fit
+
+    cands = candidates_for(HEAVY)
+    by = {c.effect: c for c in cands}
+    assert by["thrust_curve"].public == by["thruster_fault"].public == "thruster_fault"
+    n = by["thruster_fault"].n_params
+
+    def score(effect, stat, keep=None):
+        return decide.Score(effect, 1, stat, 10.0, np.zeros(1), np.ones(1), np.ones(1), keep=keep)
+
+    def fit(cand):
+        z = np.zeros((3, 12))
+        return Fit(cand, np.asarray(cand.x0, float), 0.0, 0.0, 10.0, 0.5, 0.0, np.zeros(12), z)
+
+    cal = decide.Calibration(8, 1.0, {}, {c.effect: 5.0 for c in cands}, 0.01, {})
+    best = fit(by["thruster_fault"].subset((0,)))
+    curve = fit(by["thrust_curve"])
+    by_effect = {"thruster_fault": score("thruster_fault", 50.0, (0,)), "thrust_curve": score("thrust_curve", 40.0)}
+    # nested fallback (no second pass after a thruster fault): the curve is not tried
+    assert core._second_candidates(best, [curve], by_effect, cands, cal, None, set(), None) == []
+    # second pass: nor there
+    again = {"thrust_curve": score("thrust_curve", 40.0)}
+    assert core._second_candidates(best, [curve], by_effect, cands, cal, again, set(), None) == []
+    # a first finding of another name; the fault's unit moved from 1 to 2 (0-based) on the second pass
+    first = fit(by["buoyancy"])
+    unit1 = fit(by["thruster_fault"].subset((1,)))
+    by_effect = {"buoyancy": score("buoyancy", 90.0), "thruster_fault": score("thruster_fault", 50.0, (1,))}
+    again = {"thruster_fault": score("thruster_fault", 40.0, (2,))}
+    out = core._second_candidates(first, [unit1], by_effect, cands, cal, again, set(), None)
+    assert len(out) == 1 and out[0][2], out  # fitted again, alone on top of the first
+    assert out[0][0].keys == by["thruster_fault"].subset((2,)).keys and n > 2
+    # the same unit: the first round's fit is reused
+    again = {"thruster_fault": score("thruster_fault", 40.0, (1,))}
+    out = core._second_candidates(first, [unit1], by_effect, cands, cal, again, set(), None)
+    assert [(c.keys, alone) for c, _, alone in out] == [(unit1.candidate.keys, False)]

@@ -255,12 +255,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 best_pair = (pf, oc, sc)
         if best_pair is not None:
             pf, oc, sc = best_pair
-            chosen, final = list(_split_pair(pf, best, oc)), pf
+            chosen, final = list(_split_pair(pf, best, oc, res0_fit)), pf
             # the second finding's confidence and sd are those of its own test, the second pass
             # (only for it: the first round's table, the IMU bias's rank and a finding named
             # alone after a rejected pair keep the first round's)
             second_test[id(chosen[1])] = (sc, best.candidate.public if again is not None else None)
-    fits = chosen + [f for f in single if all(f is not c for c in chosen)]  # the report's plots: findings first
     # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
     bias_named = any(s.effect == "imu_bias" for s in significant) and (not chosen or bias.statistic / cal.threshold[
@@ -343,6 +342,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         named = {f.candidate.effect for f in chosen} | ({"imu_bias"} if bias_named else set())
         rejected = [e for e in dict.fromkeys(rejected) if e not in named]
     res1 = final_res
+    fits = chosen + [f for f in single if all(f is not c for c in chosen)]  # the report's plots: findings first
     n_fam = len(families)
     findings = [_finding(f, vehicle, *second_test.get(id(f), (by_effect.get(f.candidate.effect), None)), cal=cal,
                          n_fam=n_fam) for f in chosen]
@@ -487,6 +487,9 @@ def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, aga
     (`skip`); without it, the `fitted` that pass the first pass's nested score test on top of
     the first (`decide.joint_gain`)."""
     fe = best.candidate.effect
+    public = {c.effect: c.public for c in cands}
+    # never the first's sibling that reports under the same name (a thrust curve after a thruster fault)
+    fitted = [o for o in fitted if o.candidate.public != best.candidate.public]
     if again is None:
         out = []
         for o in fitted:
@@ -495,18 +498,22 @@ def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, aga
             if gain > cal.threshold[o.candidate.effect]:
                 out.append((o.candidate, tuple(o.theta), False))
         return out
-    public = {c.effect: c.public for c in cands}
-    # never the first's sibling that reports under the same name (a thrust curve after a thruster fault)
     sig = {e: q for e, q in again.items()
            if q.statistic > cal.threshold[e] and e not in skip and public[e] != best.candidate.public}
     for e, q in again.items():
         _say(progress, f"with {fe}: {e:18s} S = {q.statistic:10.1f}  threshold {cal.threshold[e]:8.1f}  held-out {q.holdout_drop:9.1f}")
-    # a first-round fit is reused only for the part the second pass picks (a thruster fault's unit
-    # may change: unit 1's fit had been paired on unit 2's evidence, a review's find)
-    reuse = [o for o in fitted if o.candidate.effect in sig and sig[o.candidate.effect].keep == by_effect[o.candidate.effect].keep]
-    out = [(o.candidate, tuple(o.theta), False) for o in reuse]
-    new = [q for e, q in sig.items() if e not in {o.candidate.effect for o in reuse}]
-    return out + [(*_start(q, cands), True) for q in _to_fit(new, cal, SECOND_MORE, SECOND_TANGENT_FAILED)]
+    # a first-round fit is reused for the part the second pass picks; a thruster fault whose unit
+    # changed is fitted again on the new unit, like a reused one outside the cap (unit 1's fit had
+    # been paired on unit 2's evidence, a review's find)
+    out, moved = [], []
+    for o in fitted:
+        q = sig.get(o.candidate.effect)
+        if q is not None and q.keep == by_effect[o.candidate.effect].keep:
+            out.append((o.candidate, tuple(o.theta), False))
+        elif q is not None:
+            moved.append((*_start(q, cands), True))
+    new = [q for e, q in sig.items() if e not in {o.candidate.effect for o in fitted}]
+    return out + moved + [(*_start(q, cands), True) for q in _to_fit(new, cal, SECOND_MORE, SECOND_TANGENT_FAILED)]
 
 
 def _to_fit(above, cal, top: int, failed: int) -> list:
@@ -719,14 +726,16 @@ def _with_bias(cm: CorrectedModel, bias) -> CorrectedModel:
         cm.correction, gyro_bias=tuple(bias.theta[:3]), accel_bias=tuple(bias.theta[3:])))
 
 
-def _split_pair(pf: Fit, a: Fit, cb: Candidate):
+def _split_pair(pf: Fit, a: Fit, cb: Candidate, res0: np.ndarray):
     """The two findings of a pair fit (the first `a`, the second's candidate `cb`): each with its
-    share of the joint parameters."""
+    share of the joint parameters and of the correction (the second's residual is the nominal's
+    `res0` less what it adds to the first: the report plots what each explains)."""
     na = a.candidate.n_params
     fa = Fit(a.candidate, pf.theta[:na], pf.chi2_train, pf.chi2_holdout, a.delta_holdout, a.explained,
              a.bic, a.per_channel, a.residual, a.model, None if pf.sd is None else pf.sd[:na])
     fb = Fit(cb, pf.theta[na:], pf.chi2_train, pf.chi2_holdout, pf.delta_holdout - a.delta_holdout,
-             pf.explained - a.explained, pf.bic - a.bic, pf.per_channel - a.per_channel, pf.residual, pf.model, None if pf.sd is None else pf.sd[na:])
+             pf.explained - a.explained, pf.bic - a.bic, pf.per_channel - a.per_channel, res0 - a.residual + pf.residual,
+             pf.model, None if pf.sd is None else pf.sd[na:])
     return fa, fb
 
 

@@ -237,8 +237,8 @@ def _scalar_update(x, P, H, z_minus_h, r, is_angle, gate):
     for i in range(n):
         s += H[i] * PH[i]
     s += r
-    if not s > 0.0:  # the covariance has lost definiteness along H (a 2 Hz log's ungated start,
-        return 0.0, 0, 0.0  # real small.tlog): no update can be trusted through it
+    if not s >= r:  # H P H^T < 0: the covariance has lost definiteness along H (a 2 Hz log's
+        return 0.0, 0, 0.0  # ungated start, the real small.tlog): no update can be trusted through it
     v = _wrap(z_minus_h) if is_angle else z_minus_h
     z2 = v * v / s
     if not math.isfinite(z2) or z2 > gate:
@@ -355,8 +355,9 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                 l += ll
                 m += used
                 outliers += 1 - used
-                inno_ss[kind] += z2
-                inno_n[kind] += used
+                if gate < math.inf:  # the settling start's innovations say nothing of the model
+                    inno_ss[kind] += z2
+                    inno_n[kind] += used
         x[I_ATT + 2] = _wrap(x[I_ATT + 2])
         P = 0.5 * (P + P.T)
         nll[k] = l
