@@ -76,7 +76,7 @@ class Diagnosis:
     residual0: np.ndarray = field(repr=False)  # (N, 12) nominal residual channels
     residual1: np.ndarray = field(repr=False)  # (N, 12) with the findings
     windows: list = field(repr=False)
-    fits: list = field(repr=False)  # the significant candidates' nonlinear fits, ranked
+    fits: list = field(repr=False)  # the findings' fits (a pair split into each one's share), then the other significant fits, ranked
     shots: dict = field(repr=False)  # "starts", "length", "before", "after", "meas"
     mass_diag: np.ndarray = field(repr=False)
 
