@@ -339,8 +339,6 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             _say(progress, f"rejected {effect} alone: " + (
                 "the held-out fit is not better than the nominal's" if math.isfinite(alt["total_before"])
                 else "no held-out stretch long enough to show that the fit is not worse"))
-        named = {f.candidate.effect for f in chosen} | ({"imu_bias"} if bias_named else set())
-        rejected = [e for e in dict.fromkeys(rejected) if e not in named]
     res1 = final_res
     fits = chosen + [f for f in single if all(f is not c for c in chosen)]  # the report's plots: findings first
     n_fam = len(families)
@@ -365,7 +363,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         findings.append(entry)  # after the calibrated findings (it is not calibrated)
     public = {c.effect: c.public for c in cands}
     kinds = {c.effect: c.kind for c in cands}
-    named = {f.candidate.public for f in chosen}  # by the name the report uses (a thrust curve is a thruster fault)
+    # by the name the report uses (a thrust curve is a thruster fault); a finding named alone after a
+    # rejected pair (or the IMU bias) is not also listed rejected
+    named = {f.candidate.public for f in chosen} | ({"imu_bias"} if bias_named else set())
     rejected = list(dict.fromkeys(e for e in (public.get(e, e) for e in rejected + worse) if e not in named))
     # a second finding was tested on the second pass: not also listed partly untestable from the first
     untestable = untestable + [u for u in partly if u["effect"] not in named]
