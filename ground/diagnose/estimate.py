@@ -66,7 +66,14 @@ SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts f
 # extra-noise draw, ArduSub rates: w +0.5 m/s with sd 0.19 before the second depth sample) set a
 # wrong vertical velocity with a small variance, every depth innovation after it failed the gate
 # until the 5 s timeout, and the window's depth drifted 0.3 m: that one window inflated the heave
-# channel's noise floor fivefold for the whole recording and hid a buoyancy error in it
+# channel's noise floor fivefold for the whole recording and hid a buoyancy error in it.
+# Ungated is not unguarded: while settling, only depth samples that agree with their neighbours
+# (`depth_plausible`) are fused, and the settling time counts from the segment's first such
+# sample (or from a divergence restart). Fused ungated, random pressure in a recording's first
+# seconds ruined the whole diagnosis, and one +2000 hPa sample at t = 0 restarted the estimator
+# (a hostile user's finds)
+PLAUSIBLE_M = 0.1  # a depth sample further than this (+ 3 sd, + 0.5 m/s over the span) from the
+PLAUSIBLE_N = 2  # median of its 2 + 1 + 2 neighbouring samples, or in a spread that wide, is implausible
 
 # Measurement kinds, in the order of `Estimate.innovation_rms`.
 MEAS = ("gyro", "accel", "depth", "attitude", "mocap_pos", "mocap_att")
@@ -253,16 +260,18 @@ def _scalar_update(x, P, H, z_minus_h, r, is_angle, gate):
 
 @njit(cache=True)
 def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, att, att_ok,
-            mocap, mocap_ok, sig, surf, reset, seg_start, p_reset, store, xs_f, Ps_f, xs_p, Ps_p, Fs,
-            nll, nsc, inno_ss, inno_n, since, k0):
+            mocap, mocap_ok, sig, surf, reset, plausible, settle_from, p_reset, store, xs_f, Ps_f, xs_p, Ps_p,
+            Fs, nll, nsc, inno_ss, inno_n, since, k0):
     """Forward EKF over len(cmd) steps from (x0, P0); stores filter and prediction when `store`.
 
     Step k: update with the measurements of row k (state at t_k), then predict to t_{k+1}
     (act_next[k]: the actuator states at t_{k+1}).
-    `since` (6, 3), updated in place: the step (k0 + k, counted from the recording's start, so
+    `since` (7, 3), updated in place: the step (k0 + k, counted from the recording's start, so
     chunks carry it) at which each measured axis's run of gated-out innovations began, -1 when
-    it passes (GATE_RETRY_S). `seg_start` (n,): the step (counted like `since`) at which each
-    row's segment began: depth is not gated within SETTLE_S of it.
+    it passes (GATE_RETRY_S); since[6, 0] holds the step of the last divergence restart.
+    `settle_from` (n,): the step (counted like `since`) of the first plausible depth sample of each
+    row's segment: depth is not gated within SETTLE_S of it (or of a restart), and only
+    `plausible` depth is fused before and during that time.
     Returns the state and covariance predicted past the last row, and the outlier count.
     """
     n = cmd.shape[0]
@@ -332,6 +341,17 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                     H[I_ATT + i] = 1.0
                     v = mocap[k, 3 + i] - x[I_ATT + i]
                     angle = True
+                if kind == 2 and k0 + k - max(settle_from[k], since[6, 0]) < settle:
+                    # settling (SETTLE_S): plausible depth fused ungated, the rest skipped; its
+                    # innovations say nothing of the model, and no retry timer runs
+                    since[kind, i] = -1
+                    if plausible[k]:
+                        ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle, math.inf)
+                        l += ll
+                        m += used
+                    else:
+                        outliers += 1
+                    continue
                 if kind == 2 and since[kind, i] >= 0 and k0 + k - since[kind, i] >= retry:
                     # depth timed out: the height reset to the measurement, its variance the
                     # sensor's and its correlations dropped, and that sample not fused again
@@ -346,8 +366,7 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                     P[2, 2] = sig[kind] ** 2
                     since[kind, i] = -1
                     continue
-                gate = math.inf if kind == 2 and k0 + k - seg_start[k] < settle else GATE_CHI2
-                ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle, gate)
+                ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle, GATE_CHI2)
                 if used:
                     since[kind, i] = -1
                 elif since[kind, i] < 0:
@@ -355,9 +374,8 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                 l += ll
                 m += used
                 outliers += 1 - used
-                if gate < math.inf:  # the settling start's innovations say nothing of the model
-                    inno_ss[kind] += z2
-                    inno_n[kind] += used
+                inno_ss[kind] += z2
+                inno_n[kind] += used
         x[I_ATT + 2] = _wrap(x[I_ATT + 2])
         P = 0.5 * (P + P.T)
         nll[k] = l
@@ -385,6 +403,7 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
         else:  # the model cannot follow (a vehicle file that does not fit the recording): restart
             # from the last estimate at rest, with the prior's uncertainty, and count it
             resets += 1
+            since[6, 0] = k0 + k + 1  # depth settles again (SETTLE_S)
             x[I_NU:I_NU + 6] = 0.0
             x[I_D:I_D + 6] = 0.0
             P[:, :] = 0.0
@@ -454,6 +473,43 @@ def initial_covariance(noise: Noise) -> np.ndarray:
     return np.diag(s ** 2)
 
 
+def depth_plausible(meas: Measurements) -> np.ndarray:
+    """(N,) bool: the depth samples that agree with their neighbours, for the settling start.
+
+    Each sample against the median of itself and PLAUSIBLE_N samples either side (fewer at the
+    ends): within tol of it, and the window's median absolute deviation within tol too, with
+    tol = PLAUSIBLE_M + 3 sd + 0.5 m/s times half the window's span (a median follows a ramp,
+    its spread does not: 2 Hz depth of a sphere diving at 0.5 m/s spreads 0.25 m). A spike is
+    far from its neighbours' median; a run of random values has a wide spread (a moving-window
+    outlier test in the manner of the Hampel identifier: Pearson, IEEE TCST 10(1), 2002). With fewer
+    than three samples nothing can be judged and all are plausible."""
+    out = np.zeros(len(meas.depth_ok), bool)
+    rows = np.flatnonzero(meas.depth_ok)
+    if len(rows) < 3:
+        out[rows] = True
+        return out
+    w = PLAUSIBLE_N
+    d = np.pad(meas.depth_m[rows].astype(float), w, constant_values=np.nan)
+    t = np.pad(meas.time_s[rows].astype(float), w, mode="edge")
+    win = np.lib.stride_tricks.sliding_window_view(d, 2 * w + 1)
+    med = np.nanmedian(win, axis=1)
+    mad = np.nanmedian(np.abs(win - med[:, None]), axis=1)
+    tol = PLAUSIBLE_M + 3.0 * meas.sigma[2] + 0.5 * 0.5 * (t[2 * w:] - t[:-2 * w])
+    out[rows] = (np.abs(d[w:-w] - med) <= tol) & (mad <= tol)
+    return out
+
+
+def _settle_from(reset: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """(N,) per row, the row of its segment's first good depth sample (segments start at row 0
+    and at each `reset`); past the end, so that the whole segment is settling, when it has none."""
+    n = len(reset)
+    steps = np.arange(n)
+    seg = np.cumsum(reset | (steps == 0)) - 1
+    first = np.full(seg[-1] + 1 if n else 0, 2 * n + 1, np.int64)
+    np.minimum.at(first, seg[good], steps[good])
+    return first[seg]
+
+
 def nominal_mass_inverse(p: np.ndarray) -> np.ndarray:
     """M0^-1, the nominal mass matrix (fully submerged, away from walls) inverted (Fossen eq. 3.44)."""
     return np.linalg.inv(model.mass_matrix(p, 1.0, 1.0))
@@ -484,9 +540,10 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     starts = list(range(0, n, CHUNK))
     checkpoints = []
     x, P = np.asarray(x0, float).copy(), P0
-    since = np.full((6, 3), -1, np.int64)  # _filter: runs of gated-out innovations, across chunks
-    steps = np.arange(n)
-    seg_start = np.maximum.accumulate(np.where(meas.reset | (steps == 0), steps, 0))  # _filter: SETTLE_S
+    since = np.full((7, 3), -1, np.int64)  # _filter: runs of gated-out innovations, across chunks,
+    since[6, 0] = -2 * n - 1  # and the last divergence restart
+    plausible = depth_plausible(meas)
+    settle_from = _settle_from(meas.reset, meas.depth_ok & plausible)
     outliers = resets = 0
 
     def stores(m):
@@ -501,7 +558,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
         keep = ci == len(starts) - 1
         st = stores(s1 - s0) if keep else (dummy2, dummy3, dummy2, dummy3, dummy3)
         x, P, o, r = _filter(x, P, act[sl], act_next[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
-                          meas.reset[sl], seg_start[sl], p_reset, keep, *st, nll[sl], nsc[sl], inno_ss, inno_n, since, s0)
+                          meas.reset[sl], plausible[sl], settle_from[sl], p_reset, keep, *st, nll[sl], nsc[sl], inno_ss, inno_n, since, s0)
         outliers += o
         resets += r
         if keep:
@@ -520,7 +577,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
             xf, Pf, xp, Pp, Fs = stores(m)
             xc, Pc, sc = checkpoints[ci]
             _filter(xc, Pc, act[sl], act_next[sl], cmd[sl], p, minv, h, q, *[a[sl] for a in arrays], meas.sigma, surf,
-                    meas.reset[sl], seg_start[sl], p_reset, True, xf, Pf, xp, Pp, Fs, np.zeros(m), np.zeros(m, np.int64),
+                    meas.reset[sl], plausible[sl], settle_from[sl], p_reset, True, xf, Pf, xp, Pp, Fs, np.zeros(m), np.zeros(m, np.int64),
                     np.zeros(len(MEAS)), np.zeros(len(MEAS), np.int64), sc.copy(), s0)
         P_next = _rts(xf, Pf, xp, Pp, Fs, x_next, P_next, xs[sl], stds[sl])
         x_next = xs[s0].copy()
@@ -627,10 +684,10 @@ def measurements(rec, vehicle, t_grid: np.ndarray, delay_s: float = 0.0,
 
 
 def initial_state(meas: Measurements, surface_depth: float) -> np.ndarray:
-    """At rest (spec 6), at the first measured depth and attitude (motion capture first)."""
+    """At rest (spec 6), at the first plausible depth and the first attitude (motion capture first)."""
     x = np.zeros(NX)
-    i = int(np.argmax(meas.depth_ok)) if meas.depth_ok.any() else 0
-    x[2] = surface_depth + (meas.depth_m[i] if meas.depth_ok.any() else 0.0)
+    good = meas.depth_ok & depth_plausible(meas)
+    x[2] = surface_depth + (meas.depth_m[int(np.argmax(good))] if good.any() else 0.0)
     if meas.mocap_ok.any():
         j = int(np.argmax(meas.mocap_ok))
         x[0:3] = meas.mocap[j, :3]
