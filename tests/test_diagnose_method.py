@@ -783,6 +783,21 @@ def test_nothing_testable_is_not_within_its_noise():
     assert "; other candidates passed the calibrated test but too small to name: added_mass" in summary_text(both)
 
 
+def test_a_recording_too_short_to_test_reports_in_the_same_shape(plain):
+    """2 s of a recording: every candidate untestable with the reason, and the report has the
+    keys a full one has (a reader of the JSON found no 'warnings' or 'candidates' in it)."""
+    from ground.diagnose.cli import summary_text
+
+    rep = core.diagnose(plain.between(plain.t_start_s, plain.t_start_s + 2.0), V).report
+    full = {"recording", "mismatch", "findings", "warnings", "untestable", "rejected", "negligible", "fit",
+            "candidates", "elapsed_s"}
+    assert full <= set(rep), full - set(rep)
+    assert rep["candidates"] and not any(c["testable"] for c in rep["candidates"])
+    assert {c["effect"] for c in rep["candidates"]} == {u["effect"] for u in rep["untestable"]}
+    assert all("too little data" in u["reason"] for u in rep["untestable"])
+    assert summary_text(rep).startswith("no finding: this recording cannot test any candidate")
+
+
 @pytest.mark.slow
 def test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_named_first(tmp_path):
     """Eval 496 (dev data now): a missing servo lag, joystick pilot, 50 Hz IMU, no motion capture.

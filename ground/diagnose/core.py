@@ -601,11 +601,15 @@ def _insufficient(rec, vehicle, reason: str, t_start: float) -> Diagnosis:
         "recording": rec.summary(),
         "mismatch": {"signals": {}, "windows": []},
         "findings": [],
+        "warnings": [],
         "untestable": [{"effect": c.public, "kind": c.kind, "reason": why} for c in candidates_for(vehicle)],
         "rejected": [],
         "negligible": [],
         "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}, "raw": {"before": nan, "after": nan}},
                 "holdout_fraction": 0.0, "method": "none: too little data"},
+        "candidates": [{"effect": c.public, "kind": c.kind, "statistic": None, "threshold": None,
+                        "heldout_chi2_drop": None, "confidence": None, "testable": False}
+                       for c in candidates_for(vehicle)],
         "elapsed_s": round(time.perf_counter() - t_start, 2),
     }
     return Diagnosis(report, None, None, None, [], [], {}, replay.nominal_mass_diag(vehicle))
