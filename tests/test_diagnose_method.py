@@ -783,6 +783,21 @@ def test_nothing_testable_is_not_within_its_noise():
     assert "; other candidates passed the calibrated test but too small to name: added_mass" in summary_text(both)
 
 
+def test_a_significant_candidate_whose_linear_step_says_nothing_held_out_is_still_fitted():
+    """A review's find: `_to_fit` took the candidates whose linear held-out drop was above zero
+    (the best few) and those below it (by S / threshold): a drop of exactly 0 or NaN was neither
+    fitted nor listed anywhere. Now it is fitted with those whose step does not fit better; the
+    IMU bias (no residual step) stays out."""
+    def score(effect, stat, drop):
+        return decide.Score(effect, 1, stat, drop, np.zeros(1), np.ones(1))
+
+    cal = decide.Calibration(8, 1.0, {}, {e: 10.0 for e in "abcde"} | {"imu_bias": 10.0}, 0.01, {})
+    above = [score("a", 50.0, 30.0), score("b", 40.0, -5.0), score("c", 30.0, 0.0), score("d", 90.0, math.nan),
+             score("imu_bias", 99.0, math.nan)]
+    got = [s.effect for s in core._to_fit(above, cal, top=3, failed=3)]
+    assert got == ["a", "d", "b", "c"]
+
+
 def test_a_recording_too_short_to_test_reports_in_the_same_shape(plain):
     """2 s of a recording: every candidate untestable with the reason, and the report has the
     keys a full one has (a reader of the JSON found no 'warnings' or 'candidates' in it)."""

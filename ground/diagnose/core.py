@@ -250,6 +250,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             if _too_small(oc, pf.theta[best.candidate.n_params:], decide.calibrated_sd(sc, cal),
                           pf.explained - best.explained, vehicle, pf.delta_holdout - best.delta_holdout):
                 continue  # the same rules as for a first finding, on its share of the pair
+            n1 = best.candidate.n_params
+            if n1 and _too_small(best.candidate, pf.theta[:n1], decide.calibrated_sd(by_effect[best.candidate.effect], cal),
+                                 best.explained, vehicle, best.delta_holdout):
+                continue  # and the first, moved by the pair, must still be worth naming
             if pf.delta_holdout - best.delta_holdout > share * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
                 best_pair = (pf, oc, sc)
@@ -518,12 +522,12 @@ def _second_candidates(best: Fit, fitted: list, by_effect: dict, cands, cal, aga
 
 def _to_fit(above, cal, top: int, failed: int) -> list:
     """The significant force candidates (`above` their thresholds) worth a nonlinear fit: at most
-    `top` by their linear held-out drop, and at most `failed` of those whose linear step fits
-    worse on held-out data, by S / threshold (the tangent at the start has the wrong shape, a lag
+    `top` by their linear held-out drop, and at most `failed` of those whose linear step does not
+    fit better on held-out data, by S / threshold (the tangent at the start has the wrong shape, a lag
     far from its start value, not the effect absent: its nonlinear fit from the start decides)."""
     forces = [s for s in above if s.effect != "imu_bias"]
     return (sorted((s for s in forces if s.holdout_drop > 0), key=lambda s: -s.holdout_drop)[:top]
-            + sorted((s for s in forces if s.holdout_drop < 0),
+            + sorted((s for s in forces if not s.holdout_drop > 0),  # (a drop of 0 or NaN: no evidence either way)
                      key=lambda s: -s.statistic / cal.threshold[s.effect])[:failed])
 
 
