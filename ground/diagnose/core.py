@@ -35,6 +35,7 @@ SECOND_TANGENT_FAILED = 2  # ... and those whose step fails held out, by S / thr
 LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn), at least
 LEAD_TAUS = 5.0  # ... and this many of the actuator subsystem's slowest time constants (lead_seconds)
 LEAD_MAX_S = 60.0
+IMPLAUSIBLE_WARN = 0.01  # more depth samples than this share voted out (estimate.depth_plausible): a warning
 MIN_DRAWS = 2  # fewer calibrated null draws than this: no finding (the thresholds would be guesses)
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
 Z_GATE = 2.5  # the data-driven `unknown` term (not calibrated by the null draws) must lower the
@@ -387,6 +388,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         warnings.append(f"only {cal.draws} null draw(s) could be made on this recording's grid: the thresholds "
                         "are not calibrated, so no finding is named")
         findings = []
+    if est.depth_implausible > IMPLAUSIBLE_WARN * est.depth_samples:
+        warnings.append(f"{est.depth_implausible} of {est.depth_samples} depth samples "
+                        f"({100 * est.depth_implausible / est.depth_samples:.0f} %) disagree with the samples around them: "
+                        "is the pressure sensor sound? A sample is left out only where the samples around it are sound")
     if est.divergences:
         warnings.append(f"the nominal model could not follow this recording: its estimator restarted "
                         f"{est.divergences} time(s); the vehicle file does not describe this vehicle, so no "

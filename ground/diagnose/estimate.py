@@ -72,8 +72,10 @@ SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts f
 # sample (or from a divergence restart). Fused ungated, random pressure in a recording's first
 # seconds ruined the whole diagnosis, and one +2000 hPa sample at t = 0 restarted the estimator
 # (a hostile user's finds)
-PLAUSIBLE_M = 0.1  # a depth sample further than this (+ 3 sd, + 0.5 m/s over the span) from the
-PLAUSIBLE_N = 2  # median of its 2 + 1 + 2 neighbouring samples, or in a spread that wide, is implausible
+PLAUSIBLE_S = 1.0  # a depth sample is judged by the samples within this time of it ...
+PLAUSIBLE_M = 0.1  # ... agreeing with one within this (+ 3 sd) ...
+PLAUSIBLE_SPEED_M_S = 2.0  # ... + this speed times their time apart (a dive at 1.5 m/s seen at 2 Hz
+# must agree with itself; the vehicles here stay under 1 m/s vertically)
 
 # Measurement kinds, in the order of `Estimate.innovation_rms`.
 MEAS = ("gyro", "accel", "depth", "attitude", "mocap_pos", "mocap_att")
@@ -127,6 +129,8 @@ class Estimate:
     outliers: int  # innovations beyond the gate, skipped
     innovation_rms: dict  # MEAS kind -> RMS of normalised innovations (1 when the model and noise agree)
     divergences: int = 0  # times the model could not follow and the filter restarted
+    depth_samples: int = 0  # depth samples read ...
+    depth_implausible: int = 0  # ... and those that disagree with most of their neighbours (`depth_plausible`)
 
     @property
     def disturbance(self) -> np.ndarray:
@@ -474,28 +478,34 @@ def initial_covariance(noise: Noise) -> np.ndarray:
 
 
 def depth_plausible(meas: Measurements) -> np.ndarray:
-    """(N,) bool: the depth samples that agree with their neighbours, for the settling start.
+    """(N,) bool: the depth samples that agree with most of their neighbours, for the settling start.
 
-    Each sample against the median of itself and PLAUSIBLE_N samples either side (fewer at the
-    ends): within tol of it, and the window's median absolute deviation within tol too, with
-    tol = PLAUSIBLE_M + 3 sd + 0.5 m/s times half the window's span (a median follows a ramp,
-    its spread does not: 2 Hz depth of a sphere diving at 0.5 m/s spreads 0.25 m). A spike is
-    far from its neighbours' median; a run of random values has a wide spread (a moving-window
-    outlier test in the manner of the Hampel identifier: Pearson, IEEE TCST 10(1), 2002). With fewer
-    than three samples nothing can be judged and all are plausible."""
+    Two samples agree when they differ by at most tol + PLAUSIBLE_SPEED_M_S |dt|, tol =
+    PLAUSIBLE_M + 3 sd (the sd capped at PLAUSIBLE_M: garbage inflates the estimate). A sample is
+    plausible when it agrees with more than half of the samples within PLAUSIBLE_S of it, or has
+    fewer than two such neighbours (nothing to judge it by). A vote, not a median: a median of five
+    took a run of three stuck samples (or garbage on every other sample) for the truth, and at a
+    recording's edge, where the window holds three, a run of two (an adversary's finds). A run of
+    garbage that fills most of PLAUSIBLE_S still wins its own vote: nothing local can tell it from
+    the truth, and the gate and the retry take over once the settling time is up."""
     out = np.zeros(len(meas.depth_ok), bool)
     rows = np.flatnonzero(meas.depth_ok)
-    if len(rows) < 3:
-        out[rows] = True
-        return out
-    w = PLAUSIBLE_N
-    d = np.pad(meas.depth_m[rows].astype(float), w, constant_values=np.nan)
-    t = np.pad(meas.time_s[rows].astype(float), w, mode="edge")
-    win = np.lib.stride_tricks.sliding_window_view(d, 2 * w + 1)
-    med = np.nanmedian(win, axis=1)
-    mad = np.nanmedian(np.abs(win - med[:, None]), axis=1)
-    tol = PLAUSIBLE_M + 3.0 * meas.sigma[2] + 0.5 * 0.5 * (t[2 * w:] - t[:-2 * w])
-    out[rows] = (np.abs(d[w:-w] - med) <= tol) & (mad <= tol)
+    d = meas.depth_m[rows].astype(float)
+    t = meas.time_s[rows].astype(float)
+    tol = PLAUSIBLE_M + 3.0 * min(float(meas.sigma[2]), PLAUSIBLE_M)
+    near = np.zeros(len(d), np.int64)
+    agree = np.zeros(len(d), np.int64)
+    for o in range(1, len(d)):  # neighbours o samples apart: as many offsets as samples in PLAUSIBLE_S
+        dt = t[o:] - t[:-o]
+        close = dt <= PLAUSIBLE_S
+        if not close.any():
+            break
+        ok = close & (np.abs(d[o:] - d[:-o]) <= tol + PLAUSIBLE_SPEED_M_S * dt)
+        near[o:] += close
+        near[:-o] += close
+        agree[o:] += ok
+        agree[:-o] += ok
+    out[rows] = (near < 2) | (2 * agree > near)
     return out
 
 
@@ -584,7 +594,8 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     rms = {MEAS[i]: float(math.sqrt(inno_ss[i] / inno_n[i])) for i in range(len(MEAS)) if inno_n[i]}
     for a in (xs, stds, nll):
         a.setflags(write=False)
-    return Estimate(meas.time_s, xs, stds, nll, nsc, int(outliers), rms, int(resets))
+    return Estimate(meas.time_s, xs, stds, nll, nsc, int(outliers), rms, int(resets), int(meas.depth_ok.sum()),
+                    int((meas.depth_ok & ~plausible).sum()))
 
 
 
