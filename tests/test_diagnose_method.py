@@ -800,7 +800,8 @@ def test_a_significant_candidate_whose_linear_step_says_nothing_held_out_is_stil
 
 def test_a_recording_too_short_to_test_reports_in_the_same_shape(plain):
     """2 s of a recording: every candidate untestable with the reason, and the report has the
-    keys a full one has (a reader of the JSON found no 'warnings' or 'candidates' in it)."""
+    keys a full one has (a reader of the JSON found no 'warnings' or 'candidates' in it) but
+    'calibration': no null draw was made (and the summary would then say 'withheld')."""
     from ground.diagnose.cli import summary_text
 
     rep = core.diagnose(plain.between(plain.t_start_s, plain.t_start_s + 2.0), V).report
@@ -1002,7 +1003,8 @@ def test_depth_plausibility_by_hand():
     at 2 Hz a spike disagrees with its four neighbours (and each of them still agrees with three
     of four); a dive at 1.5 m/s seen at 2 Hz agrees with itself; a run of random values does not,
     nor the first good sample after it (two of its four neighbours are garbage); a stream with
-    one neighbour a sample, or two samples, cannot be judged. At 50 Hz, the adversary's finds
+    one neighbour a sample agrees with it; two samples must agree with each other, one alone
+    cannot be judged; a spike first in a jittered 2 Hz stream is voted out. At 50 Hz, the adversary's finds
     against a median of five: three stuck samples at the start, and a constant on every other
     sample, are voted out."""
     def meas(t, d):
@@ -1022,7 +1024,13 @@ def test_depth_plausibility_by_hand():
     assert estimate.depth_plausible(meas(t, noisy)).tolist() == [False] * 7 + [True] * 3
     gaps = np.where(np.arange(10) % 2 == 0, flat, np.nan)  # every other row has no sample
     assert estimate.depth_plausible(meas(t, gaps)).tolist() == [True, False] * 5
-    assert estimate.depth_plausible(meas(t[:2], np.array([1.0, 40.0]))).all()
+    assert not estimate.depth_plausible(meas(t[:2], np.array([1.0, 40.0]))).any()  # one neighbour: both must agree
+    assert estimate.depth_plausible(meas(t[:2], np.array([1.0, 1.2]))).all()
+    assert estimate.depth_plausible(meas(t[:1], np.array([40.0]))).all()  # alone: nothing to judge it by
+    rng = np.random.default_rng(0)  # the reviewer's 2 Hz stream with 30 ms of jitter, a spike first
+    for _ in range(50):
+        tj = np.arange(8) * 0.5 + rng.uniform(-0.03, 0.03, 8)
+        assert not estimate.depth_plausible(meas(tj, np.r_[21.0, np.full(7, 1.0)]))[0]
     t = np.arange(300) * 0.02
     stuck = np.full(300, 1.0)
     stuck[:3] = 21.0

@@ -254,6 +254,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             n1 = best.candidate.n_params
             if n1 and _too_small(best.candidate, pf.theta[:n1], decide.calibrated_sd(by_effect[best.candidate.effect], cal),
                                  best.explained, vehicle, best.delta_holdout):
+                _say(progress, f"{oc.effect} not paired: the pair moves {best.candidate.effect} below what is worth naming")
                 continue  # and the first, moved by the pair, must still be worth naming
             if pf.delta_holdout - best.delta_holdout > share * best.delta_holdout and (
                     best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
@@ -391,7 +392,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     if est.depth_implausible > IMPLAUSIBLE_WARN * est.depth_samples:
         warnings.append(f"{est.depth_implausible} of {est.depth_samples} depth samples "
                         f"({100 * est.depth_implausible / est.depth_samples:.0f} %) disagree with the samples around them: "
-                        "is the pressure sensor sound? A sample is left out only where the samples around it are sound")
+                        "is the pressure sensor sound? (While the estimator settles such samples are skipped; "
+                        "elsewhere its 6-sigma gate decides)")
     if est.divergences:
         warnings.append(f"the nominal model could not follow this recording: its estimator restarted "
                         f"{est.divergences} time(s); the vehicle file does not describe this vehicle, so no "

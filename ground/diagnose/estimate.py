@@ -353,6 +353,7 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                         ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle, math.inf)
                         l += ll
                         m += used
+                        outliers += 1 - used  # (an indefinite covariance along H: not used either)
                     else:
                         outliers += 1
                     continue
@@ -483,7 +484,9 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     Two samples agree when they differ by at most tol + PLAUSIBLE_SPEED_M_S |dt|, tol =
     PLAUSIBLE_M + 3 sd (the sd capped at PLAUSIBLE_M: garbage inflates the estimate). A sample is
     plausible when it agrees with more than half of the samples within PLAUSIBLE_S of it, or has
-    fewer than two such neighbours (nothing to judge it by). A vote, not a median: a median of five
+    none (nothing to judge it by): with one, both must agree (a reviewer's find: passed unjudged,
+    a +20 m spike at the start of a 2 Hz stream with 30 ms of jitter, one neighbour within 1 s,
+    was the initial depth in 69 of 200 draws). A vote, not a median: a median of five
     took a run of three stuck samples (or garbage on every other sample) for the truth, and at a
     recording's edge, where the window holds three, a run of two (an adversary's finds). A run of
     garbage that fills most of PLAUSIBLE_S still wins its own vote: nothing local can tell it from
@@ -492,7 +495,8 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     rows = np.flatnonzero(meas.depth_ok)
     d = meas.depth_m[rows].astype(float)
     t = meas.time_s[rows].astype(float)
-    tol = PLAUSIBLE_M + 3.0 * min(float(meas.sigma[2]), PLAUSIBLE_M)
+    sd = float(meas.sigma[2])
+    tol = PLAUSIBLE_M + 3.0 * (min(sd, PLAUSIBLE_M) if math.isfinite(sd) else PLAUSIBLE_M)
     near = np.zeros(len(d), np.int64)
     agree = np.zeros(len(d), np.int64)
     for o in range(1, len(d)):  # neighbours o samples apart: as many offsets as samples in PLAUSIBLE_S
@@ -505,7 +509,7 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
         near[:-o] += close
         agree[o:] += ok
         agree[:-o] += ok
-    out[rows] = (near < 2) | (2 * agree > near)
+    out[rows] = (near == 0) | (2 * agree > near)
     return out
 
 
