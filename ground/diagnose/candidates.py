@@ -246,7 +246,9 @@ def candidates_for(v: Vehicle, over_ground: bool = True) -> list[Candidate]:
     if not over_ground:
         out[-1] = out[-1].subset((2,))
     # --- misestimated physical parameters
-    out.append(_vec("added_mass", "misestimated", "hydro.added_mass", v.hydro.added_mass, 0.0, 4.0, 0.0))
+    # up to 6x: a heave added mass a fifth of the truth (the benchmark's 5x cases) must be reachable; at
+    # 4x its fit sat on the bound, 20 % off, in 8 of the 15 parameter misses of eval 3082-3381
+    out.append(_vec("added_mass", "misestimated", "hydro.added_mass", v.hydro.added_mass, 0.0, 6.0, 0.0))
     out.append(_vec("linear_damping", "misestimated", "hydro.linear_damping", v.hydro.linear_damping, 0.0, 4.0, 0.0))
     out.append(_vec("quadratic_damping", "misestimated", "hydro.quadratic_damping", v.hydro.quadratic_damping, 0.0, 4.0, 0.0))
     vol = v.body.volume
