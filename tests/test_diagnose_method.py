@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import types
 
 import numpy as np
@@ -1062,7 +1063,8 @@ def test_random_pressure_in_the_first_seconds_names_nothing_on_a_perfect_recordi
     nominal's held-out NRMSE went from 0.052 (clean) to 8.0 with 43 estimator restarts, and a wall
     effect and a current were withdrawn, with no warning. Only plausible depth is fused while
     settling: nothing named, nothing withdrawn, the fit as on the clean recording (0.0505), and a
-    warning says that 3 % of the depth samples disagree with the samples around them."""
+    warning counts the garbage samples in the water (those below the surface are dropped as air)
+    among the depth samples that disagree with the samples around them."""
     rec = _session(tmp_path_factory, "garbage", V.with_values({"sensors.imu_rate": 50.0}), mocap=False, seed=7)
     pr = rec.pressure
     bad = pr.time_s < pr.time_s[0] + 2.5
@@ -1073,7 +1075,15 @@ def test_random_pressure_in_the_first_seconds_names_nothing_on_a_perfect_recordi
     assert rep["findings"] == [] and rep.get("rejected", []) == [], (rep["findings"], rep.get("rejected"))
     assert rep["mismatch"]["disturbance"]["divergences"] == 0
     assert rep["fit"]["holdout"]["before"]["total"] < 0.06, rep["fit"]["holdout"]["before"]
-    assert any("depth samples (3 %) disagree" in w for w in rep["warnings"]), rep["warnings"]
+    env = V.environment
+    wet = (press - env.p_atm) / (env.rho * env.g) > 0.01  # estimate.measurements: the rest reads the air
+    garbage = int((bad & wet).sum())
+    said = [re.search(r"(\d+) of (\d+) depth samples \((\d+) %\) disagree", w) for w in rep["warnings"]]
+    said = [m for m in said if m]
+    assert len(said) == 1, rep["warnings"]
+    n, total, pct = (int(g) for g in said[0].groups())
+    assert 0.9 * garbage <= n <= garbage  # on the grid a sample may share a row: never more than were fed
+    assert abs(total - wet.sum()) <= 0.02 * wet.sum() and pct == round(100 * n / total)
 
 
 def test_signal_nrmse_by_hand_and_a_stuck_sensor_is_left_out():

@@ -608,19 +608,20 @@ def _insufficient(rec, vehicle, reason: str, t_start: float) -> Diagnosis:
     hz = (len(imu.time_s) - 1) / max(imu.time_s[-1] - imu.time_s[0], 1e-9) if imu is not None and len(imu.time_s) > 1 else 0.0
     why = f"{reason} (IMU at {hz:.0f} Hz): too little data to test anything"
     nan = float("nan")
+    cands = candidates_for(vehicle)
     report = {
         "recording": rec.summary(),
         "mismatch": {"signals": {}, "windows": []},
         "findings": [],
         "warnings": [],
-        "untestable": [{"effect": c.public, "kind": c.kind, "reason": why} for c in candidates_for(vehicle)],
+        "untestable": [{"effect": c.public, "kind": c.kind, "reason": why} for c in cands],
         "rejected": [],
         "negligible": [],
         "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}, "raw": {"before": nan, "after": nan}},
                 "holdout_fraction": 0.0, "method": "none: too little data"},
         "candidates": [{"effect": c.public, "kind": c.kind, "statistic": None, "threshold": None,
                         "heldout_chi2_drop": None, "confidence": None, "testable": False}
-                       for c in candidates_for(vehicle)],
+                       for c in cands],
         "elapsed_s": round(time.perf_counter() - t_start, 2),
     }
     return Diagnosis(report, None, None, None, [], [], {}, replay.nominal_mass_diag(vehicle))

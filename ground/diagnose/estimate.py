@@ -75,7 +75,7 @@ SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts f
 PLAUSIBLE_S = 1.0  # a depth sample is judged by the samples within this time of it ...
 PLAUSIBLE_M = 0.1  # ... agreeing with one within this (+ 3 sd) ...
 PLAUSIBLE_SPEED_M_S = 2.0  # ... + this speed times their time apart (a dive at 1.5 m/s seen at 2 Hz
-# must agree with itself; the vehicles here stay under 1 m/s vertically)
+# must agree with itself: at 0.5 m/s, the first version's slope, it was voted out)
 
 # Measurement kinds, in the order of `Estimate.innovation_rms`.
 MEAS = ("gyro", "accel", "depth", "attitude", "mocap_pos", "mocap_att")
