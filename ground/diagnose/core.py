@@ -389,7 +389,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         warnings.append(f"only {cal.draws} null draw(s) could be made on this recording's grid: the thresholds "
                         "are not calibrated, so no finding is named")
         findings = []
-    if est.depth_implausible > IMPLAUSIBLE_WARN * est.depth_samples:
+    if not est.depth_samples:
+        warnings.append("no usable depth sample (the pressure is missing, not a number or reads above the "
+                        "surface throughout): depth comes from the IMU and the model alone, and the heave "
+                        "findings rest on that")
+    elif est.depth_implausible > IMPLAUSIBLE_WARN * est.depth_samples:
         warnings.append(f"{est.depth_implausible} of {est.depth_samples} depth samples "
                         f"({100 * est.depth_implausible / est.depth_samples:.0f} %) disagree with the samples around them: "
                         "is the pressure sensor sound? (While the estimator settles such samples are skipped; "
