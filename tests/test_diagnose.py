@@ -189,6 +189,11 @@ def test_white_noise_sigma():
     t = np.linspace(0, 10, 5000)
     y = np.sin(t) + rng.normal(0, 0.01, t.size)  # slow signal + white noise
     assert locate.white_noise_sigma(y)[0] == pytest.approx(0.01, rel=0.06)
+    # a sample that is not a number is left out (an adversary's find: one NaN pressure sample made
+    # the depth noise its floor, 20x below the sensor's); a column with none left is NaN
+    y[2500], y[100] = np.nan, np.inf
+    assert locate.white_noise_sigma(y)[0] == pytest.approx(0.01, rel=0.06)
+    assert np.isnan(locate.white_noise_sigma(np.full((9, 2), np.nan))).all()
 
 
 def test_stlsq_recovers_a_sparse_law():

@@ -494,20 +494,22 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     by at most tol + v |dt| (tol = PLAUSIBLE_M + 3 sd, the sd capped at PLAUSIBLE_M: garbage
     inflates the estimate; v = `meas.heave_limit_m_s`). A sample is plausible when
 
-    1. its run is long: runs are split where consecutive samples disagree (a step no vehicle
-       makes), and a run must last PLAUSIBLE_RUN_S or hold more than half of its segment's
-       samples (a segment starts at `meas.reset`); and
-    2. it wins its vote: it agrees with more than half of the samples within PLAUSIBLE_S (or 2.5
-       periods) of it, or has none (nothing to judge it by). With one neighbour both must agree
-       (a reviewer's find: a +20 m spike first in a jittered 2 Hz stream was the initial depth in
-       69 of 200 draws).
+    1. it wins its vote: it agrees with more than half of the samples within PLAUSIBLE_S (or 2.5
+       periods) of it, or has none. With one neighbour both must agree (a reviewer's find: a +20 m
+       spike first in a jittered 2 Hz stream was the initial depth in 69 of 200 draws); and
+    2. its run is long: the samples are split into runs where no pair of samples on either side
+       within the window agrees (a step no vehicle makes, a gap longer than the window), and a
+       run must last PLAUSIBLE_RUN_S or hold more than half of its segment's samples (a segment
+       starts at `meas.reset`; a lone sample is one). A spike is bridged by its neighbours.
 
     A vote, not a median: a median of five took a run of three stuck samples (or garbage on every
-    other sample) for the truth (an adversary's finds). The vote alone took a stuck run of 27
-    samples at 50 Hz; the run rule alone takes a smooth start-up transient. What neither can tell
-    from the truth is a wrong run that lasts longer than PLAUSIBLE_RUN_S and joins the truth no
-    faster than the vehicle moves: after the settling time the gate and the retry take over.
-    Cost: O(PLAUSIBLE_NEIGHBOURS N)."""
+    other sample) for the truth (an adversary's finds). The vote alone took 27 samples stuck 1 m
+    off at 50 Hz; the runs alone take a smooth start-up transient; runs split wherever two samples
+    in a row disagree broke at a 15 hPa spike once a second and no run was long enough (and a lone
+    first sample 1.3 m off ahead of a 1.5 s gap joined the truth's run when the window did not
+    bound a run's steps): a hostile session's finds. What neither rule can tell from the truth is a wrong run that lasts longer than
+    PLAUSIBLE_RUN_S and joins the truth no faster than the vehicle moves: after the settling
+    time the gate and the retry take over. Cost: O(PLAUSIBLE_NEIGHBOURS N)."""
     out = np.zeros(len(meas.depth_ok), bool)
     rows = np.flatnonzero(meas.depth_ok)
     if not len(rows):
@@ -517,44 +519,52 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     sd = float(meas.sigma[2])
     tol = PLAUSIBLE_M + 3.0 * (min(sd, PLAUSIBLE_M) if math.isfinite(sd) else PLAUSIBLE_M)
     v = float(meas.heave_limit_m_s)
-
-    def agree(i, j):
-        return np.abs(d[j] - d[i]) <= tol + v * np.abs(t[j] - t[i])
-
-    # 1. runs, within segments
-    seg = (np.cumsum(meas.reset | (np.arange(len(out)) == 0)) - 1)[rows]
-    cut = np.r_[True, ~agree(np.arange(len(d) - 1), np.arange(1, len(d))) | (np.diff(seg) != 0)]
-    run = np.cumsum(cut) - 1
-    first, last = np.flatnonzero(cut), np.r_[np.flatnonzero(cut)[1:] - 1, len(d) - 1]
-    seg_n = np.bincount(seg)[seg[first]]
-    long = (t[last] - t[first] >= PLAUSIBLE_RUN_S - 1e-9) | (2 * (last - first + 1) > seg_n)
-    # 2. the vote, over at most PLAUSIBLE_NEIGHBOURS offsets each side
     period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
     window = max(PLAUSIBLE_S, 2.5 * period)
+
+    def agree(dd, dt):
+        return np.abs(dd) <= tol + v * np.abs(dt)
+
+    # 1. the vote, over at most PLAUSIBLE_NEIGHBOURS offsets each side; 2. the runs: the space
+    # between samples k and k + 1 is bridged when two samples on either side of it agree
     reach = int((np.searchsorted(t, t + window, side="right") - 1 - np.arange(len(t))).max())
     near = np.zeros(len(d), np.int64)
     agreed = np.zeros(len(d), np.int64)
+    bridges = np.zeros(len(d) + 1, np.int64)
     for o in np.unique(np.round(np.linspace(1, reach, min(reach, PLAUSIBLE_NEIGHBOURS))).astype(int)) if reach else ():
-        i, j = np.arange(len(d) - o), np.arange(o, len(d))
-        close = t[j] - t[i] <= window
-        ok = close & agree(i, j)
-        near[j] += close
-        near[i] += close
-        agreed[j] += ok
-        agreed[i] += ok
-    out[rows] = long[run] & ((near == 0) | (2 * agreed > near))
+        dt = t[o:] - t[:-o]
+        close = dt <= window
+        ok = close & agree(d[o:] - d[:-o], dt)
+        near[o:] += close
+        near[:-o] += close
+        agreed[o:] += ok
+        agreed[:-o] += ok
+        bridges[:-o - 1] += ok  # a pair (i, i + o) bridges the spaces i .. i + o - 1
+        bridges[o:-1] -= ok
+    seg = (np.cumsum(meas.reset | (np.arange(len(out)) == 0)) - 1)[rows]
+    cut = np.r_[True, (np.cumsum(bridges)[:-2] <= 0) | (np.diff(seg) != 0)]
+    first = np.flatnonzero(cut)
+    last = np.r_[first[1:] - 1, len(d) - 1]
+    long = (t[last] - t[first] >= PLAUSIBLE_RUN_S - 1e-9) | (2 * (last - first + 1) > np.bincount(seg)[seg[first]])
+    out[rows] = long[np.cumsum(cut) - 1] & ((near == 0) | (2 * agreed > near))
     return out
 
 
-def _settle_from(reset: np.ndarray, good: np.ndarray) -> np.ndarray:
-    """(N,) per row, the row of its segment's first good depth sample (segments start at row 0
-    and at each `reset`); past the end, so that the whole segment is settling, when it has none."""
+def _settle_from(reset: np.ndarray, good: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """(N,) per row, the row of its segment's first `good` depth sample (segments start at row 0
+    and at each `reset`); when it has none, its first `ok` one (settling then fuses nothing, and
+    the gate takes over after it: "past the end", the first choice, never fused depth again in a
+    segment whose every sample was voted out, a hostile session's find); past the end when it has
+    no depth at all."""
     n = len(reset)
     steps = np.arange(n)
     seg = np.cumsum(reset | (steps == 0)) - 1
-    first = np.full(seg[-1] + 1 if n else 0, 2 * n + 1, np.int64)
-    np.minimum.at(first, seg[good], steps[good])
-    return first[seg]
+    out = []
+    for rows in (good, ok):
+        first = np.full(seg[-1] + 1 if n else 0, 2 * n + 1, np.int64)
+        np.minimum.at(first, seg[rows], steps[rows])
+        out.append(first)
+    return np.where(out[0] <= 2 * n, out[0], out[1])[seg]
 
 
 def nominal_mass_inverse(p: np.ndarray) -> np.ndarray:
@@ -590,7 +600,7 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     since = np.full((7, 3), -1, np.int64)  # _filter: runs of gated-out innovations, across chunks,
     since[6, 0] = -2 * n - 1  # and the last divergence restart
     plausible = depth_plausible(meas)
-    settle_from = _settle_from(meas.reset, meas.depth_ok & plausible)
+    settle_from = _settle_from(meas.reset, meas.depth_ok & plausible, meas.depth_ok)
     outliers = resets = 0
 
     def stores(m):

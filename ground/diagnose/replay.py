@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -95,7 +96,10 @@ def white_noise_sigma(y) -> np.ndarray:
     """sigma of white noise on a sampled signal: 1.4826 MAD(diff2) / sqrt(6), per column.
 
     For white noise of sigma s, the second difference has sigma s sqrt(6); smooth motion adds
-    little at the sensor rate, and the median makes the rare fast transient harmless.
+    little at the sensor rate, and the median makes the rare fast transient harmless. A sample
+    that is not a finite number is left out (the differences it touches): one NaN pressure sample
+    made the median NaN, the depth noise fell to its floor, 20x below the sensor's, and the fit
+    of a perfect recording doubled (an adversary's find). NaN when a column has none left.
     """
     y = np.asarray(y, float)
     if y.ndim == 1:
@@ -103,7 +107,10 @@ def white_noise_sigma(y) -> np.ndarray:
     if len(y) < 5:
         return np.zeros(y.shape[1])
     d2 = y[2:] - 2 * y[1:-1] + y[:-2]
-    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    d2[~np.isfinite(d2)] = np.nan
+    with warnings.catch_warnings():  # an all-NaN column: NaN, said by the caller
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mad = np.nanmedian(np.abs(d2 - np.nanmedian(d2, axis=0)), axis=0)
     return 1.4826 * mad / math.sqrt(6.0)
 
 
