@@ -74,7 +74,7 @@ SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts f
 # (a hostile user's finds)
 PLAUSIBLE_M = 0.1  # two depth samples agree within this (+ 3 sd) ...
 PLAUSIBLE_SPEED = 2.0  # ... + this many times the vehicle's max_heave_speed_m_s times their time apart
-# (ASR-IV: 1 m/s; the benchmark's pilots never exceed 0.3 m/s. 2 m/s flat, the first choice, let a
+# (ASR-IV's 0.5 m/s: 1 m/s; its benchmark pilots never exceed 0.3 m/s. 2 m/s flat, the first choice, let a
 # +1 m sample agree with every sample more than 0.45 s away, and a start-up transient fading at
 # 2.9 m/s pass for a dive: a hostile session's finds)
 PLAUSIBLE_MIN_SPEED_M_S = 0.5  # ... and never less (an envelope is what a setpoint may ask, and a
@@ -489,33 +489,43 @@ def initial_covariance(noise: Noise) -> np.ndarray:
     return np.diag(s ** 2)
 
 
+def _segments(reset: np.ndarray) -> np.ndarray:
+    """(N,) the segment of each row: segments start at row 0 and at each `reset`."""
+    return np.cumsum(reset | (np.arange(len(reset)) == 0)) - 1
+
+
 def depth_plausible(meas: Measurements) -> np.ndarray:
     """(N,) bool: the depth samples the settling start may fuse. Two samples agree when they differ
     by at most tol + v |dt| (tol = PLAUSIBLE_M + 3 sd, the sd capped at PLAUSIBLE_M: garbage
     inflates the estimate; v = `meas.heave_limit_m_s`). A sample is plausible when
 
     1. it wins its vote: it agrees with more than half of the samples within PLAUSIBLE_S (or 2.5
-       periods) of it, or has none. With one neighbour both must agree (a reviewer's find: a +20 m
-       spike first in a jittered 2 Hz stream was the initial depth in 69 of 200 draws); and
-    2. its run is long: the samples are split into runs where no pair of samples on either side
-       within the window agrees (a step no vehicle makes, a gap longer than the window), and a
-       run must last PLAUSIBLE_RUN_S or hold more than half of its segment's samples (a segment
-       starts at `meas.reset`; a lone sample is one). A spike is bridged by its neighbours.
+       periods) of it (counted across segments). With one neighbour both must agree (a reviewer's
+       find: a +20 m spike first in a jittered 2 Hz stream was the initial depth in 69 of 200
+       draws); with none, it must be its segment's only sample (nothing else to judge it by); and
+    2. its run is long: the samples are split into runs where no agreeing pair within the window
+       bridges a step (nor two agreeing samples in a row at most PLAUSIBLE_RUN_S apart: lost
+       packets), and a run must last PLAUSIBLE_RUN_S or hold more than half of its segment's
+       samples (a segment starts at `meas.reset`). A spike is bridged by its neighbours.
 
     A vote, not a median: a median of five took a run of three stuck samples (or garbage on every
     other sample) for the truth (an adversary's finds). The vote alone took 27 samples stuck 1 m
     off at 50 Hz; the runs alone take a smooth start-up transient; runs split wherever two samples
-    in a row disagree broke at a 15 hPa spike once a second and no run was long enough (and a lone
-    first sample 1.3 m off ahead of a 1.5 s gap joined the truth's run when the window did not
-    bound a run's steps): a hostile session's finds. What neither rule can tell from the truth is a wrong run that lasts longer than
-    PLAUSIBLE_RUN_S and joins the truth no faster than the vehicle moves: after the settling
-    time the gate and the retry take over. Cost: O(PLAUSIBLE_NEIGHBOURS N)."""
+    in a row disagree broke at a 15 hPa spike once a second, no run was long enough and no depth
+    was fused; a lone first sample 1.3 m off ahead of a 1.5 s gap won a vote it had no one to
+    lose (hostile sessions' finds); runs split at every gap longer than the window took lost
+    packets for a faulty sensor (a review's find). What these rules cannot tell from the truth is
+    a wrong run that lasts longer than PLAUSIBLE_RUN_S and joins the truth no faster than the
+    vehicle moves: after the settling time the gate and the retry take over. At most
+    PLAUSIBLE_NEIGHBOURS offsets a side are looked at: an hour at 1 kHz is judged in seconds."""
     out = np.zeros(len(meas.depth_ok), bool)
     rows = np.flatnonzero(meas.depth_ok)
     if not len(rows):
         return out
     d = meas.depth_m[rows].astype(float)
     t = meas.time_s[rows].astype(float)
+    seg = _segments(meas.reset)[rows]
+    seg_n = np.bincount(seg)
     sd = float(meas.sigma[2])
     tol = PLAUSIBLE_M + 3.0 * (min(sd, PLAUSIBLE_M) if math.isfinite(sd) else PLAUSIBLE_M)
     v = float(meas.heave_limit_m_s)
@@ -525,13 +535,13 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     def agree(dd, dt):
         return np.abs(dd) <= tol + v * np.abs(dt)
 
-    # 1. the vote, over at most PLAUSIBLE_NEIGHBOURS offsets each side; 2. the runs: the space
-    # between samples k and k + 1 is bridged when two samples on either side of it agree
+    # 1. the vote; 2. the runs: the space between samples k and k + 1 is bridged by an agreeing
+    # pair (i, i + o), i <= k < i + o (a difference array over the spaces)
     reach = int((np.searchsorted(t, t + window, side="right") - 1 - np.arange(len(t))).max())
     near = np.zeros(len(d), np.int64)
     agreed = np.zeros(len(d), np.int64)
-    bridges = np.zeros(len(d) + 1, np.int64)
-    for o in np.unique(np.round(np.linspace(1, reach, min(reach, PLAUSIBLE_NEIGHBOURS))).astype(int)) if reach else ():
+    bridges = np.zeros(len(d), np.int64)
+    for o in np.unique(np.round(np.linspace(1, reach, min(reach, PLAUSIBLE_NEIGHBOURS))).astype(int)):
         dt = t[o:] - t[:-o]
         close = dt <= window
         ok = close & agree(d[o:] - d[:-o], dt)
@@ -539,26 +549,26 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
         near[:-o] += close
         agreed[o:] += ok
         agreed[:-o] += ok
-        bridges[:-o - 1] += ok  # a pair (i, i + o) bridges the spaces i .. i + o - 1
-        bridges[o:-1] -= ok
-    seg = (np.cumsum(meas.reset | (np.arange(len(out)) == 0)) - 1)[rows]
-    cut = np.r_[True, (np.cumsum(bridges)[:-2] <= 0) | (np.diff(seg) != 0)]
+        link = ok | ((o == 1) & ~close & (dt <= PLAUSIBLE_RUN_S) & agree(d[o:] - d[:-o], dt))  # lost packets
+        bridges[:-o] += link
+        bridges[o:] -= link
+    cut = np.r_[True, (np.cumsum(bridges)[:-1] <= 0) | (np.diff(seg) != 0)]
     first = np.flatnonzero(cut)
     last = np.r_[first[1:] - 1, len(d) - 1]
-    long = (t[last] - t[first] >= PLAUSIBLE_RUN_S - 1e-9) | (2 * (last - first + 1) > np.bincount(seg)[seg[first]])
-    out[rows] = long[np.cumsum(cut) - 1] & ((near == 0) | (2 * agreed > near))
+    long = (t[last] - t[first] >= PLAUSIBLE_RUN_S - 1e-9) | (2 * (last - first + 1) > seg_n[seg[first]])
+    won = (2 * agreed > near) | ((near == 0) & (seg_n[seg] == 1))
+    out[rows] = long[np.cumsum(cut) - 1] & won
     return out
 
 
 def _settle_from(reset: np.ndarray, good: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """(N,) per row, the row of its segment's first `good` depth sample (segments start at row 0
-    and at each `reset`); when it has none, its first `ok` one (settling then fuses nothing, and
-    the gate takes over after it: "past the end", the first choice, never fused depth again in a
-    segment whose every sample was voted out, a hostile session's find); past the end when it has
-    no depth at all."""
+    """(N,) per row, the row of its segment's first `good` depth sample (segments: `_segments`);
+    when it has none, its first `ok` one (settling then fuses nothing, and the gate takes over
+    after it: "past the end", the first choice, never fused depth again in a segment whose every
+    sample was voted out, a hostile session's find); past the end when it has no depth at all."""
     n = len(reset)
     steps = np.arange(n)
-    seg = np.cumsum(reset | (steps == 0)) - 1
+    seg = _segments(reset)
     out = []
     for rows in (good, ok):
         first = np.full(seg[-1] + 1 if n else 0, 2 * n + 1, np.int64)
@@ -738,7 +748,8 @@ def measurements(rec, vehicle, t_grid: np.ndarray, delay_s: float = 0.0,
     for a in arrays:
         a.setflags(write=False)
     return Measurements(t_grid, dt, imu_g, imu_ok, depth_g[:, 0].copy(), depth_ok, att_g, att_ok, moc_g, moc_ok,
-                        sig, reset, max(PLAUSIBLE_SPEED * vehicle.envelope.max_heave_speed_m_s, PLAUSIBLE_MIN_SPEED_M_S))
+                        sig, reset, max(PLAUSIBLE_SPEED * vehicle.envelope.max_heave_speed_m_s,
+                                        PLAUSIBLE_MIN_SPEED_M_S))
 
 
 def initial_state(meas: Measurements, surface_depth: float) -> np.ndarray:
