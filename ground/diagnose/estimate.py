@@ -506,14 +506,18 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     2. its run is long: the samples are split into runs where no agreeing pair within the window
        bridges a step (nor two agreeing samples in a row at most PLAUSIBLE_RUN_S apart: lost
        packets), and a run must last PLAUSIBLE_RUN_S or hold more than half of its segment's
-       samples (a segment starts at `meas.reset`). A spike is bridged by its neighbours.
+       samples (a segment starts at `meas.reset`). A spike is bridged by its neighbours. Of two
+       such runs that meet in a step the later one is believed, unless the earlier outlasts
+       SETTLE_S + GATE_RETRY_S (a wrong start so long is the gate's to judge).
 
     A vote, not a median: a median of five took a run of three stuck samples (or garbage on every
     other sample) for the truth (an adversary's finds). The vote alone took 27 samples stuck 1 m
     off at 50 Hz; the runs alone take a smooth start-up transient; runs split wherever two samples
     in a row disagree broke at a 15 hPa spike once a second, no run was long enough and no depth
     was fused; a lone first sample 1.3 m off ahead of a 1.5 s gap won a vote it had no one to
-    lose (hostile sessions' finds); runs split at every gap longer than the window took lost
+    lose; 1.5 s 0.6 m off, then a step to the truth, was fused as the filter settled and named a
+    delay and a motor lag, and 2.5 s left the truth gated until the retry (hostile sessions'
+    finds); runs split at every gap longer than the window took lost
     packets for a faulty sensor (a review's find). What these rules cannot tell from the truth is
     a wrong run that lasts longer than PLAUSIBLE_RUN_S and joins the truth no faster than the
     vehicle moves: after the settling time the gate and the retry take over. At most
@@ -556,6 +560,10 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     first = np.flatnonzero(cut)
     last = np.r_[first[1:] - 1, len(d) - 1]
     long = (t[last] - t[first] >= PLAUSIBLE_RUN_S - 1e-9) | (2 * (last - first + 1) > seg_n[seg[first]])
+    # a long run that steps into another long run of its segment: the later one is believed,
+    # unless the earlier one outlasts the settling time and the gate's retry
+    contested = np.r_[(seg[first[1:]] == seg[last[:-1]]) & long[1:], False]
+    long &= ~contested | (t[last] - t[first] >= SETTLE_S + GATE_RETRY_S)
     won = (2 * agreed > near) | ((near == 0) & (seg_n[seg] == 1))
     out[rows] = long[np.cumsum(cut) - 1] & won
     return out
