@@ -1013,10 +1013,10 @@ def test_depth_plausibility_by_hand():
     every other sample) and a hostile session's against a 1 s, 2 m/s vote (+1 m on the first
     sample or for 0.2 s, 27 samples stuck 1 m off, +1.5 m fading over 0.52 s) are voted out up to
     the first sample within 0.2 m of the truth; a wrong start fading no faster than the heave
-    limit wins (the documented limit); and a third's (0.6 m off for 1.1-2.5 s, then a step) against the runs (a 0.15 m spike once a second
-    left no run long enough, a lone first sample ahead of a gap joined the truth's run) and a
-    review's (lost packets split runs) are mended. An hour at 1 kHz is judged (the 1 s vote, with
-    all offsets, took 24 s)."""
+    limit wins (the documented limit). Finds against the runs are mended: a 0.15 m spike once a
+    second left no run long enough, a lone first sample ahead of a gap joined the truth's run,
+    0.6 m off for 1.1-2.5 s then a step was believed (hostile sessions), lost packets split runs
+    (a review). An hour at 1 kHz is judged (the 1 s vote, with all offsets, took 24 s)."""
     def meas(t, d):
         n = len(t)
         ok = np.isfinite(d)
@@ -1106,8 +1106,8 @@ def test_a_wrong_start_of_the_pressure_names_nothing_on_a_perfect_recording(tmp_
     mended it, a 15 hPa spike once a second left no run long enough, every depth sample was
     voted out and never fused (sensor delay named, held-out 0.53); 0.6 m off for 1.5 s, then a
     step, named a delay and a motor lag, and for 2.5 s left the truth gated until the retry
-    (held-out 0.38). Now nothing is named, the
-    fit is as on the clean recording, and a missing pressure is said. (The fade's last 0.17 m,
+    (held-out 0.38). Now nothing is named, the fit is as on the clean recording, and a missing
+    pressure is said. (The fade's last 0.17 m,
     no faster than 1 m/s against the samples after it, passes the vote: linear and quadratic
     damping are tested on it and rejected. Spikes throughout stay in the measured depth the fit
     is scored against: 0.085 held out, five candidates tested and rejected.)"""
