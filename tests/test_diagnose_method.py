@@ -1015,8 +1015,9 @@ def test_depth_plausibility_by_hand():
     the first sample within 0.2 m of the truth; a wrong start fading no faster than the heave
     limit wins (the documented limit). Finds against the runs are mended: a 0.15 m spike once a
     second left no run long enough, a lone first sample ahead of a gap joined the truth's run,
-    0.6 m off for 1.1-2.5 s then a step was believed (hostile sessions), lost packets split runs
-    (a review). An hour at 1 kHz is judged (the 1 s vote, with all offsets, took 24 s)."""
+    0.6 m off for 1.1-2.5 s then a step was believed, and the rule that mended it (the later of
+    two long runs believed) threw a true start away for a glitch (hostile sessions); lost packets
+    split runs (a review). An hour at 1 kHz is judged (the 1 s vote, with all offsets, took 24 s)."""
     def meas(t, d):
         n = len(t)
         ok = np.isfinite(d)
@@ -1064,6 +1065,10 @@ def test_depth_plausibility_by_hand():
         assert not got[wrong].any() and got[~wrong][1:].all()  # (the first after the step: half its votes are wrong)
     slow = truth + np.clip(1.0 - 0.5 * t, 0.0, None)  # fading no faster than the heave limit: the
     assert estimate.depth_plausible(meas(t, slow))[0]  # documented limit, it wins
+    glitch = (t >= 3.0) & (t < 4.5)  # a true start, then a 1.5 s glitch and random junk: believing the
+    junk = (t >= 4.5) & (t < 5.0)  # later of two long runs that meet in a step threw the start away
+    d = np.where(junk, np.random.default_rng(3).uniform(0.0, 10.0, len(t)), truth + 0.5 * glitch)
+    assert estimate.depth_plausible(meas(t, d))[t < 2.9].all()
     spikes = truth.copy()  # once a second: a run split at each spike was never long enough
     spikes[::50] += 0.15  # (0.15 m wins its vote: its neighbours bridge it)
     assert estimate.depth_plausible(meas(t, spikes)).all()

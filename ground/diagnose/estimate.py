@@ -506,9 +506,9 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     2. its run is long: the samples are split into runs where no agreeing pair within the window
        bridges a step (nor two agreeing samples in a row at most PLAUSIBLE_RUN_S apart: lost
        packets), and a run must last PLAUSIBLE_RUN_S or hold more than half of its segment's
-       samples (a segment starts at `meas.reset`). A spike is bridged by its neighbours. Of two
-       such runs that meet in a step the later one is believed, unless the earlier outlasts
-       SETTLE_S + GATE_RETRY_S (a wrong start so long is the gate's to judge).
+       samples (a segment starts at `meas.reset`), and agree with its segment's longest run
+       across the time between them (their nearest samples). A spike is bridged by its
+       neighbours.
 
     A vote, not a median: a median of five took a run of three stuck samples (or garbage on every
     other sample) for the truth (an adversary's finds). The vote alone took 27 samples stuck 1 m
@@ -516,8 +516,9 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     in a row disagree broke at a 15 hPa spike once a second, no run was long enough and no depth
     was fused; a lone first sample 1.3 m off ahead of a 1.5 s gap won a vote it had no one to
     lose; 1.5 s 0.6 m off, then a step to the truth, was fused as the filter settled and named a
-    delay and a motor lag, and 2.5 s left the truth gated until the retry (hostile sessions'
-    finds); runs split at every gap longer than the window took lost
+    delay and a motor lag, and 2.5 s left the truth gated until the retry; believing the later of
+    two long runs that meet in a step threw a true start away for a glitch whose recovery was
+    lost (hostile sessions' finds); runs split at every gap longer than the window took lost
     packets for a faulty sensor (a review's find). What these rules cannot tell from the truth is
     a wrong run that lasts longer than PLAUSIBLE_RUN_S and joins the truth no faster than the
     vehicle moves: after the settling time the gate and the retry take over. At most
@@ -559,11 +560,20 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     cut = np.r_[True, (np.cumsum(bridges)[:-1] <= 0) | (np.diff(seg) != 0)]
     first = np.flatnonzero(cut)
     last = np.r_[first[1:] - 1, len(d) - 1]
-    long = (t[last] - t[first] >= PLAUSIBLE_RUN_S - 1e-9) | (2 * (last - first + 1) > seg_n[seg[first]])
-    # a long run that steps into another long run of its segment: the later one is believed,
-    # unless the earlier one outlasts the settling time and the gate's retry
-    contested = np.r_[(seg[first[1:]] == seg[last[:-1]]) & long[1:], False]
-    long &= ~contested | (t[last] - t[first] >= SETTLE_S + GATE_RETRY_S)
+    size = last - first + 1
+    long = (t[last] - t[first] >= PLAUSIBLE_RUN_S - 1e-9) | (2 * size > seg_n[seg[first]])
+    # each segment's main run (its longest), and the long runs that agree with it across the
+    # time between them (the nearest samples of the two)
+    rseg = seg[first]
+    order = np.lexsort((np.where(long, size, -1), rseg))  # by segment, then size
+    top = np.r_[rseg[order][1:] != rseg[order][:-1], True]  # each segment's last: its longest
+    main = np.zeros(seg_n.size, np.int64)
+    main[rseg[order][top]] = order[top]
+    m = main[rseg]
+    before = np.arange(len(first)) < m
+    i = np.where(before, last, first)
+    j = np.where(before, first[m], last[m])
+    long &= (np.arange(len(first)) == m) | agree(d[j] - d[i], t[j] - t[i])
     won = (2 * agreed > near) | ((near == 0) & (seg_n[seg] == 1))
     out[rows] = long[np.cumsum(cut) - 1] & won
     return out
