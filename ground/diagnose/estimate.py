@@ -521,7 +521,10 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     lost (hostile sessions' finds); runs split at every gap longer than the window took lost
     packets for a faulty sensor (a review's find). What these rules cannot tell from the truth is
     a wrong run that lasts longer than PLAUSIBLE_RUN_S and joins the truth no faster than the
-    vehicle moves: after the settling time the gate and the retry take over. At most
+    vehicle moves, or a glitch after a true start whose return is lost in under a second of
+    dropped packets (bridged) or fades at the heave limit: the glitch joins the longest run and
+    the true start is thrown away (a hostile session's; held-out 0.75-0.84 and a delay named).
+    After the settling time the gate and the retry take over. At most
     PLAUSIBLE_NEIGHBOURS offsets a side are looked at: an hour at 1 kHz is judged in seconds."""
     out = np.zeros(len(meas.depth_ok), bool)
     rows = np.flatnonzero(meas.depth_ok)
