@@ -1059,7 +1059,7 @@ def test_depth_plausibility_by_hand():
     fade = truth + np.clip(1.5 * (1.0 - t / 0.52), 0.0, None)
     got = estimate.depth_plausible(meas(t, fade))
     assert (fade - truth)[np.argmax(got)] < 0.2 and got[t > 1.0].all()
-    for lasts in (1.1, 1.5, 2.5):  # a long wrong start that steps into the truth: the later run is believed
+    for lasts in (1.1, 1.5, 2.5):  # a long wrong start that steps into the truth: it disagrees with the longest run
         wrong = t < lasts
         got = estimate.depth_plausible(meas(t, np.where(wrong, truth + 0.6, truth)))
         assert not got[wrong].any() and got[~wrong][1:].all()  # (the first after the step: half its votes are wrong)

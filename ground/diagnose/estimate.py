@@ -552,12 +552,13 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
     for o in np.unique(np.round(np.linspace(1, reach, min(reach, PLAUSIBLE_NEIGHBOURS))).astype(int)):
         dt = t[o:] - t[:-o]
         close = dt <= window
-        ok = close & agree(d[o:] - d[:-o], dt)
+        same = agree(d[o:] - d[:-o], dt)
+        ok = close & same
         near[o:] += close
         near[:-o] += close
         agreed[o:] += ok
         agreed[:-o] += ok
-        link = ok | ((o == 1) & ~close & (dt <= PLAUSIBLE_RUN_S) & agree(d[o:] - d[:-o], dt))  # lost packets
+        link = same & (close | ((o == 1) & (dt <= PLAUSIBLE_RUN_S)))  # (two in a row across lost packets)
         bridges[:-o] += link
         bridges[o:] -= link
     cut = np.r_[True, (np.cumsum(bridges)[:-1] <= 0) | (np.diff(seg) != 0)]
