@@ -55,12 +55,13 @@ GATE_RETRY_S = 5.0  # ... unless it is depth and has not passed the gate for thi
 # fused again, and the smoothed depth drifted 6.5 m over 60 s). 1 s, as first chosen, took a 4 s
 # pressure glitch of +0.5 m in a perfect recording for the truth, pushed the sphere into the
 # floor and named a wall effect (an adversary's find); a glitch longer than 5 s is taken, as
-# ArduPilot would. Depth only: pressure is an absolute reference, while ATTITUDE and motion
-# capture can disagree for good (their yaw origins differ), and fusing such a kind ungated after
-# a second cost three right verdicts in the test suite (dev 1134, 884, a reversed BlueROV2
-# thruster); a yaw that has gone astray stays astray
+# ArduPilot would. Depth and motion-capture position only: they are absolute references, while
+# ATTITUDE and motion-capture attitude can disagree for good (their yaw origins differ), and
+# fusing such a kind ungated after a second cost three right verdicts in the test suite (dev
+# 1134, 884, a reversed BlueROV2 thruster); a yaw that has gone astray stays astray
 SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts from its generic prior
-# (a recording's or window's start, a segment after a gap): the gate guards a filter that has
+# (a recording's or window's start, a segment after a gap), and so is motion-capture position
+# (below): the gate guards a filter that has
 # converged against a glitching sensor, and a filter that has not has nothing to guard. Gated
 # from the first sample, one accelerometer update at a 10 s window's start (dev case 2679, one
 # extra-noise draw, ArduSub rates: w +0.5 m/s with sd 0.19 before the second depth sample) set a
@@ -72,6 +73,15 @@ SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts f
 # sample (or from a divergence restart). Fused ungated, random pressure in a recording's first
 # seconds ruined the whole diagnosis, and one +2000 hPa sample at t = 0 restarted the estimator
 # (a hostile user's finds)
+# Motion-capture position was gated from the first sample until 2026-11-27, and locked out the
+# same way: at a sweep pilot's start (dev case 3603, 100 Hz, 1 mm noise) the accelerometer
+# updates of the first four steps set a surge velocity of 0.4 m/s with a 1 cm/s sd, the fifth
+# mocap sample was 8 sd off, and x was never fused again: 509 of 1500 position samples of the
+# first 10 s window gated, the estimate 2 m off by its end, and a thrust inflow that improves the
+# true trajectory's held-out chi-square by 625 fitted 222 worse there (nothing was named). It
+# settles like depth now, and times out like depth (GATE_RETRY_S, one axis at a time)
+MOCAP_SETTLE_M = 0.5  # while settling, a motion-capture position this far from the estimate is
+# a glitch, not fused (the first sample sets the position: the filter starts within a few cm)
 PLAUSIBLE_M = 0.1  # two depth samples agree within this (+ 3 sd) ...
 PLAUSIBLE_SPEED = 2.0  # ... + this many times the vehicle's max_heave_speed_m_s times their time apart
 # (ASR-IV's 0.5 m/s: 1 m/s; its benchmark pilots never exceed 0.3 m/s. 2 m/s flat, the first choice, let a
@@ -284,9 +294,11 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
     `since` (7, 3), updated in place: the step (k0 + k, counted from the recording's start, so
     chunks carry it) at which each measured axis's run of gated-out innovations began, -1 when
     it passes (GATE_RETRY_S); since[6, 0] holds the step of the last divergence restart.
-    `settle_from` (n,): the step (counted like `since`) of the first plausible depth sample of each
-    row's segment: depth is not gated within SETTLE_S of it (or of a restart), and only
-    `plausible` depth is fused before and during that time.
+    `settle_from` (n, 2): the step (counted like `since`) of the first plausible depth sample
+    (column 0) and of the first motion-capture sample (column 1) of each row's segment: depth is
+    not gated within SETTLE_S of the first (or of a restart), and only `plausible` depth is fused
+    before and during that time; motion-capture position likewise after the second, and only
+    within MOCAP_SETTLE_M of the estimate.
     Returns the state and covariance predicted past the last row, and the outlier count.
     """
     n = cmd.shape[0]
@@ -356,11 +368,13 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                     H[I_ATT + i] = 1.0
                     v = mocap[k, 3 + i] - x[I_ATT + i]
                     angle = True
-                if kind == 2 and k0 + k - max(settle_from[k], since[6, 0]) < settle:
-                    # settling (SETTLE_S): plausible depth fused ungated, the rest skipped; its
+                absolute = kind == 2 or kind == 4  # depth and motion-capture position
+                if absolute and k0 + k - max(settle_from[k, kind // 4], since[6, 0]) < settle:
+                    # settling (SETTLE_S): plausible depth, and motion-capture position within
+                    # MOCAP_SETTLE_M of the estimate, fused ungated, the rest skipped; their
                     # innovations say nothing of the model, and no retry timer runs
                     since[kind, i] = -1
-                    if plausible[k]:
+                    if plausible[k] if kind == 2 else abs(v) <= MOCAP_SETTLE_M:
                         ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle, math.inf)
                         l += ll
                         m += used
@@ -368,18 +382,19 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                     else:
                         outliers += 1
                     continue
-                if kind == 2 and since[kind, i] >= 0 and k0 + k - since[kind, i] >= retry:
-                    # depth timed out: the height reset to the measurement, its variance the
-                    # sensor's and its correlations dropped, and that sample not fused again
-                    # (ArduPilot EKF3's ResetHeight and FuseVelPosNED; unlike it, the vertical
-                    # velocity is left alone). Fusing depth ungated instead made the estimate
-                    # overshoot and oscillate once the timeout was 5 s (a 2 m start error still
-                    # 0.7 m off after 10 s)
-                    x[2] += v
+                if absolute and since[kind, i] >= 0 and k0 + k - since[kind, i] >= retry:
+                    # depth (or a motion-capture axis) timed out: the position reset to the
+                    # measurement, its variance the sensor's and its correlations dropped, and
+                    # that sample not fused again (ArduPilot EKF3's ResetHeight, ResetPosition
+                    # and FuseVelPosNED; unlike it, the velocity is left alone). Fusing depth
+                    # ungated instead made the estimate overshoot and oscillate once the timeout
+                    # was 5 s (a 2 m start error still 0.7 m off after 10 s)
+                    j0 = 2 if kind == 2 else i
+                    x[j0] += v
                     for j in range(NX):
-                        P[2, j] = 0.0
-                        P[j, 2] = 0.0
-                    P[2, 2] = sig[kind] ** 2
+                        P[j0, j] = 0.0
+                        P[j, j0] = 0.0
+                    P[j0, j0] = sig[kind] ** 2
                     since[kind, i] = -1
                     continue
                 ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle, GATE_CHI2)
@@ -637,7 +652,8 @@ def smooth(meas: Measurements, act: np.ndarray, cmd: np.ndarray, p: np.ndarray, 
     since = np.full((7, 3), -1, np.int64)  # _filter: runs of gated-out innovations, across chunks,
     since[6, 0] = -2 * n - 1  # and the last divergence restart
     plausible = depth_plausible(meas)
-    settle_from = _settle_from(meas.reset, meas.depth_ok & plausible, meas.depth_ok)
+    settle_from = np.column_stack([_settle_from(meas.reset, meas.depth_ok & plausible, meas.depth_ok),
+                                   _settle_from(meas.reset, meas.mocap_ok, meas.mocap_ok)])
     outliers = resets = 0
 
     def stores(m):
