@@ -937,19 +937,40 @@ def test_motion_capture_position_is_not_locked_out_while_the_filter_settles(swee
     assert np.percentile(err, 99) < 0.01, np.percentile(err, 99, axis=0)
 
 
-def test_a_motion_capture_glitch_while_the_filter_settles_is_not_fused(sweep_start):
-    """Ungated is not unguarded: a sample MOCAP_SETTLE_M or more from the estimate while settling
-    is a glitch (a marker swap), skipped and counted; fused with 1 mm noise it would move the
-    estimate metres."""
+@pytest.mark.parametrize("size_m, seconds", [(3.0, 0.1), (0.3, 0.2)])
+def test_a_motion_capture_glitch_while_the_filter_settles_is_not_fused(sweep_start, size_m, seconds):
+    """Ungated is not unguarded: a sample more than MOCAP_SETTLE_M + 6 sd from the estimate while
+    settling is a glitch (a marker swap), skipped and counted. With 0.5 m, the first choice, a
+    0.3 m swap of 0.2 s half a second into a window was fused: it moved the accelerometer bias
+    0.6-0.95 m/s^2, the accelerometer was gated for the rest of the window and a linear damping
+    was lost (a hostile session's find)."""
     t, p, cmd, act, meas, x0 = _smoother_inputs(sweep_start, 10.0)
     rows = np.flatnonzero(meas.mocap_ok)
-    bad = rows[(t[rows] > t[0] + 0.5) & (t[rows] < t[0] + 0.6)]
+    bad = rows[(t[rows] >= t[0] + 0.5) & (t[rows] < t[0] + 0.5 + seconds)]
     moc = meas.mocap.copy()
-    moc[bad, 0] += 3.0
+    moc[bad, 0] += size_m
     est = estimate.smooth(dataclasses.replace(meas, mocap=moc), act, cmd, p, x0)
     clean = estimate.smooth(meas, act, cmd, p, x0)
-    assert est.outliers >= len(bad) > 0
+    assert est.outliers - clean.outliers == len(bad) > 0
     assert np.abs(est.x[:, 0] - clean.x[:, 0]).max() < 0.01, np.abs(est.x[:, 0] - clean.x[:, 0]).max()
+    bias = slice(estimate.I_BA, estimate.I_BA + 3)
+    assert np.abs(est.x[:, bias] - clean.x[:, bias]).max() < 0.02
+
+
+def test_motion_capture_height_is_left_to_the_depth(sweep_start):
+    """Two absolute heights that disagree (motion capture's z 3 cm off the pressure's depth: 300 Pa
+    of atmospheric pressure) took turns to reset the height every 5 s once both could time out
+    (a hostile session's find: heave speed spikes of 0.57 m/s, held-out NRMSE 0.018 -> 0.094). Only
+    the depth settles ungated and times out: the estimate follows it and the heave stays smooth."""
+    t, p, cmd, act, meas, x0 = _smoother_inputs(sweep_start, 30.0)
+    clean = estimate.smooth(meas, act, cmd, p, x0)
+    est = estimate.smooth(dataclasses.replace(meas, mocap=meas.mocap + np.array([0, 0, 0.03, 0, 0, 0])),
+                          act, cmd, p, x0)
+    heave = estimate.I_NU + 2
+    assert np.abs(est.x[:, heave] - clean.x[:, heave]).max() < 0.05, np.abs(est.x[:, heave] - clean.x[:, heave]).max()
+    late = meas.depth_ok & (t > t[0] + estimate.SETTLE_S)
+    err = est.x[late, estimate.I_POS + 2] - float(p[model.P_SURF]) - meas.depth_m[late]
+    assert np.median(np.abs(err)) < 0.01, np.median(np.abs(err))
 
 
 @pytest.mark.parametrize("axis", ["depth", "mocap x", pytest.param("yaw", marks=pytest.mark.xfail(

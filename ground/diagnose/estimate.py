@@ -55,7 +55,7 @@ GATE_RETRY_S = 5.0  # ... unless it is depth and has not passed the gate for thi
 # fused again, and the smoothed depth drifted 6.5 m over 60 s). 1 s, as first chosen, took a 4 s
 # pressure glitch of +0.5 m in a perfect recording for the truth, pushed the sphere into the
 # floor and named a wall effect (an adversary's find); a glitch longer than 5 s is taken, as
-# ArduPilot would. Depth and motion-capture position only: they are absolute references, while
+# ArduPilot would. Depth and horizontal motion-capture position only: absolute references, while
 # ATTITUDE and motion-capture attitude can disagree for good (their yaw origins differ), and
 # fusing such a kind ungated after a second cost three right verdicts in the test suite (dev
 # 1134, 884, a reversed BlueROV2 thruster); a yaw that has gone astray stays astray
@@ -79,9 +79,13 @@ SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts f
 # mocap sample was 8 sd off, and x was never fused again: 509 of 1500 position samples of the
 # first 10 s window gated, the estimate 2 m off by its end, and a thrust inflow that improves the
 # true trajectory's held-out chi-square by 625 fitted 222 worse there (nothing was named). It
-# settles like depth now, and times out like depth (GATE_RETRY_S, one axis at a time)
-MOCAP_SETTLE_M = 0.5  # while settling, a motion-capture position this far from the estimate is
-# a glitch, not fused (the first sample sets the position: the filter starts within a few cm)
+# settles like depth now, and times out like depth (GATE_RETRY_S, one axis at a time): x and y
+MOCAP_SETTLE_M = 0.1  # while settling, a motion-capture position farther than this (+ 6 sd) from
+# the estimate is a glitch, not fused (the first sample sets the position, and fused at every
+# sample the locked-out start above stays within 1 cm). 0.5 m, the first choice, fused a 0.3 m
+# marker swap of 0.2 s at a window's start: it moved the accelerometer bias 0.6-0.95 m/s^2, the
+# accelerometer was gated for the rest of the window and a linear damping was lost (a hostile
+# session's find)
 PLAUSIBLE_M = 0.1  # two depth samples agree within this (+ 3 sd) ...
 PLAUSIBLE_SPEED = 2.0  # ... + this many times the vehicle's max_heave_speed_m_s times their time apart
 # (ASR-IV's 0.5 m/s: 1 m/s; its benchmark pilots never exceed 0.3 m/s. 2 m/s flat, the first choice, let a
@@ -297,8 +301,8 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
     `settle_from` (n, 2): the step (counted like `since`) of the first plausible depth sample
     (column 0) and of the first motion-capture sample (column 1) of each row's segment: depth is
     not gated within SETTLE_S of the first (or of a restart), and only `plausible` depth is fused
-    before and during that time; motion-capture position likewise after the second, and only
-    within MOCAP_SETTLE_M of the estimate.
+    before and during that time; horizontal motion-capture position likewise after the second,
+    and only within MOCAP_SETTLE_M + 6 sd of the estimate.
     Returns the state and covariance predicted past the last row, and the outlier count.
     """
     n = cmd.shape[0]
@@ -368,13 +372,17 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                     H[I_ATT + i] = 1.0
                     v = mocap[k, 3 + i] - x[I_ATT + i]
                     angle = True
-                absolute = kind == 2 or kind == 4  # depth and motion-capture position
+                # depth and horizontal motion-capture position (mocap z is left to the depth:
+                # two absolute heights that disagree by 2 cm took turns to reset it, a hostile
+                # session's find)
+                absolute = kind == 2 or (kind == 4 and i < 2)
                 if absolute and k0 + k - max(settle_from[k, kind // 4], since[6, 0]) < settle:
                     # settling (SETTLE_S): plausible depth, and motion-capture position within
-                    # MOCAP_SETTLE_M of the estimate, fused ungated, the rest skipped; their
-                    # innovations say nothing of the model, and no retry timer runs
+                    # MOCAP_SETTLE_M + 6 sd of the estimate, fused ungated, the rest skipped;
+                    # their innovations say nothing of the model, and no retry timer runs
                     since[kind, i] = -1
-                    if plausible[k] if kind == 2 else abs(v) <= MOCAP_SETTLE_M:
+                    if plausible[k] if kind == 2 else (
+                            abs(v) <= MOCAP_SETTLE_M + math.sqrt(GATE_CHI2 * (P[i, i] + sig[kind] ** 2))):
                         ll, used, z2 = _scalar_update(x, P, H, v, sig[kind] ** 2, angle, math.inf)
                         l += ll
                         m += used
