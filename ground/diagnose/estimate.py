@@ -60,8 +60,8 @@ GATE_RETRY_S = 5.0  # ... unless it is depth and has not passed the gate for thi
 # fusing such a kind ungated after a second cost three right verdicts in the test suite (dev
 # 1134, 884, a reversed BlueROV2 thruster); a yaw that has gone astray stays astray
 SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts from its generic prior
-# (a recording's or window's start, a segment after a gap), and so is motion-capture position
-# (below): the gate guards a filter that has
+# (a recording's or window's start, a segment after a gap), and so is horizontal motion-capture
+# position (below): the gate guards a filter that has
 # converged against a glitching sensor, and a filter that has not has nothing to guard. Gated
 # from the first sample, one accelerometer update at a 10 s window's start (dev case 2679, one
 # extra-noise draw, ArduSub rates: w +0.5 m/s with sd 0.19 before the second depth sample) set a
@@ -78,8 +78,9 @@ SETTLE_S = 2.0  # depth is fused ungated for this long after the filter starts f
 # updates of the first four steps set a surge velocity of 0.4 m/s with a 1 cm/s sd, the fifth
 # mocap sample was 8 sd off, and x was never fused again: 509 of 1500 position samples of the
 # first 10 s window gated, the estimate 2 m off by its end, and a thrust inflow that improves the
-# true trajectory's held-out chi-square by 625 fitted 222 worse there (nothing was named). It
-# settles like depth now, and times out like depth (GATE_RETRY_S, one axis at a time): x and y
+# true trajectory's held-out chi-square by 625 fitted 222 worse there (nothing was named). Its x
+# and y settle like depth now and time out like depth (GATE_RETRY_S, one axis at a time); z is
+# left to the depth
 MOCAP_SETTLE_M = 0.1  # while settling, a motion-capture position farther than this (+ 6 sd) from
 # the estimate is a glitch, not fused (the first sample sets the position, and fused at every
 # sample the locked-out start above stays within 1 cm). 0.5 m, the first choice, fused a 0.3 m
@@ -376,7 +377,7 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                 # two absolute heights that disagree by 2 cm took turns to reset it, a hostile
                 # session's find)
                 absolute = kind == 2 or (kind == 4 and i < 2)
-                if absolute and k0 + k - max(settle_from[k, kind // 4], since[6, 0]) < settle:
+                if absolute and k0 + k - max(settle_from[k, kind // 4], since[6, 0]) < settle:  # (column 0: depth)
                     # settling (SETTLE_S): plausible depth, and motion-capture position within
                     # MOCAP_SETTLE_M + 6 sd of the estimate, fused ungated, the rest skipped;
                     # their innovations say nothing of the model, and no retry timer runs
@@ -612,10 +613,11 @@ def depth_plausible(meas: Measurements) -> np.ndarray:
 
 
 def _settle_from(reset: np.ndarray, good: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """(N,) per row, the row of its segment's first `good` depth sample (segments: `_segments`);
-    when it has none, its first `ok` one (settling then fuses nothing, and the gate takes over
-    after it: "past the end", the first choice, never fused depth again in a segment whose every
-    sample was voted out, a hostile session's find); past the end when it has no depth at all."""
+    """(N,) per row, the row of its segment's first `good` depth (or motion-capture) sample
+    (segments: `_segments`); when it has none, its first `ok` one (settling then fuses nothing,
+    and the gate takes over after it: "past the end", the first choice, never fused depth again
+    in a segment whose every sample was voted out, a hostile session's find); past the end when
+    it has none at all."""
     n = len(reset)
     steps = np.arange(n)
     seg = _segments(reset)
