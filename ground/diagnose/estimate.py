@@ -377,7 +377,8 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
                 # two absolute heights that disagree by 2 cm took turns to reset it, a hostile
                 # session's find)
                 absolute = kind == 2 or (kind == 4 and i < 2)
-                if absolute and k0 + k - max(settle_from[k, kind // 4], since[6, 0]) < settle:  # (column 0: depth)
+                col = 0 if kind == 2 else 1  # settle_from's column: depth, motion capture
+                if absolute and k0 + k - max(settle_from[k, col], since[6, 0]) < settle:
                     # settling (SETTLE_S): plausible depth, and motion-capture position within
                     # MOCAP_SETTLE_M + 6 sd of the estimate, fused ungated, the rest skipped;
                     # their innovations say nothing of the model, and no retry timer runs
