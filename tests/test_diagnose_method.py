@@ -169,6 +169,44 @@ def test_a_perfect_model_shows_no_delay_and_no_added_mass_in_the_linear_scores(t
     np.testing.assert_allclose(got["added_mass"].theta[:3], truth.hydro.added_mass[:3], rtol=0.03)
 
 
+def test_a_candidate_that_changes_nothing_but_rounding_has_no_evidence(plain):
+    """The plain session's 5-35 s stay 0.5 m or more below the surface (the effect acts above
+    R = 0.16 m), with a servo lag missing from the model. Switching the surface proximity on
+    changes the residual by 1e-14 along the added mass's force, and the scale-free score made a
+    full statistic of it (S 135, held-out drop 84, ranked and fitted; eval 4077 counted a case
+    never near the surface as testable). Now it carries no evidence, and the report says why."""
+    w = plain.between(5.0, 35.0)
+    nominal = V.with_effects(servo_lag=False, surface_proximity=False)
+    ev = Evaluator(w, nominal)
+    assert ev.traj0.pos_ned_m[:, 2].min() > 2 * V.body.radius
+    res0 = ev.residual(ev.base)
+    split = locate.make_split(ev.traj0, locate.noise_realisation(ev, res0))
+    cands = [c for c in candidates.candidates_for(nominal) if c.effect in ("surface_proximity", "servo_lag")]
+    got = {s.effect: s for s in decide.linear_scores(ev, cands, split, res0, nominal)}
+    assert got["servo_lag"].statistic > 100  # the model error the rounding followed
+    assert got["surface_proximity"].statistic == 0.0 and got["surface_proximity"].holdout_drop == 0.0
+    cal = decide.calibrate([], ["surface_proximity"], [got["surface_proximity"]])
+    assert not decide.testable(got["surface_proximity"], cal)
+    reason = core.untestable_reason("surface_proximity", got["surface_proximity"], cal, ev.traj0, nominal, w)
+    assert reason == "never within 0.24 m of the surface; the recording carries no information on it"
+
+
+def test_rounding_is_judged_per_channel_against_its_size_not_one_wild_sample():
+    rng = np.random.default_rng(0)
+    r0 = np.column_stack([rng.normal(0, 1.0, 1000), rng.normal(0, 1e-3, 1000), np.full(1000, np.nan)])
+    r0[10, 0] = 1e9  # a wild sample does not raise channel 0's floor
+    r0[[11, 12], 0] = np.inf  # nor do infinite ones
+    floor = decide.rounding_floor(r0)
+    assert floor[0] == pytest.approx(1e-9 * np.percentile(np.abs(r0[np.isfinite(r0[:, 0]), 0]), 99))
+    assert 2e-9 < floor[0] < 4e-9 and 2e-12 < floor[1] < 4e-12 and floor[2] == 0.0
+    step = np.zeros_like(r0)
+    step[:, 0], step[:, 1] = 1e-12, 1e-13  # rounding in both channels
+    step[5, 0], step[6, 1] = 1e-7, 1e-10  # a real change in each
+    d = decide._moved(r0 + step, r0, floor)
+    assert d[5, 0] == pytest.approx(1e-7) and d[6, 1] == pytest.approx(1e-10)
+    assert np.count_nonzero(np.nan_to_num(d)) == 2
+
+
 def test_the_delay_probe_delays_the_commands_through_the_lead_in(plain):
     """CorrectedModel.command_delay_s (the sensor delay's linear score): two grid steps later,
     the lead-in's last two commands open the window and its first command is held twice before

@@ -39,6 +39,7 @@ even its best-determined parameter has a standard deviation above half its refer
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -106,6 +107,35 @@ def reference_magnitude(cand, vehicle) -> np.ndarray:
     return 0.2 * np.maximum(x0, 1e-9)
 
 
+ROUNDING = 1e-9  # a residual change below this share of its channel's size is rounding (`_moved`)
+
+
+def rounding_floor(res0) -> np.ndarray:
+    """Per channel, the residual change that is rounding: ROUNDING x the 99th percentile of |res0|
+    (a percentile, so that one wild sample does not make real changes look like rounding; a
+    non-finite sample is no size at all)."""
+    a = np.abs(np.asarray(res0, float))
+    a[~np.isfinite(a)] = np.nan
+    if not len(a):
+        return np.zeros(a.shape[1:])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN channel: no floor
+        return ROUNDING * np.nan_to_num(np.nanpercentile(a, 99.0, axis=0), nan=0.0)
+
+
+def _moved(res, res0, floor) -> np.ndarray:
+    """res - res0 with the changes at rounding level (`rounding_floor`) set to zero. The score is
+    scale-free (S = d^T F (F^T F)^-1 F^T d), so a candidate that changes nothing but the last bits
+    still got a full statistic: a surface proximity on a recording that never came within 0.35 m
+    of the surface (its submerged fraction 1 - 1e-16, a force 1e-14 along the added mass's) stood
+    at S 572 against a threshold of 3, was ranked, fitted and rejected, and the case was counted
+    testable (eval 4077)."""
+    with np.errstate(invalid="ignore"):  # inf - inf: NaN, no evidence (linear_scores)
+        d = np.asarray(res, float) - np.asarray(res0, float)
+        d[np.abs(d) <= floor] = 0.0
+    return d
+
+
 def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
     """`Score` of every candidate (module doc): the smoothed disturbance regressed on what each
     candidate would add to the generalised force; parameterless candidates get one direction,
@@ -119,13 +149,14 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
     w = 1.0 / np.maximum(sd, 1e-9)
     y_tr = np.nan_to_num((dist[tr] * w[tr]).ravel())
     y_ho = np.nan_to_num((dist[ho] * w[ho]).ravel())
+    floor = rounding_floor(res0)
     out = []
     for c in cands:
         if c.effect == "imu_bias":
             continue
         try:
             if c.n_params == 0:
-                cols = [ev.residual(c.apply((), ev.base)) - res0]
+                cols = [_moved(ev.residual(c.apply((), ev.base)), res0, floor)]
                 theta0 = np.zeros(1)
             elif c.switch_on and c.n_params == 1 and c.x0[0] != 0:
                 # a missing effect with one parameter: the residual without it is the one at 0,
@@ -134,7 +165,7 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                 # (a missing current) is switched on at zero, the nominal itself, and takes the
                 # finite differences below (the secant divided by zero: never testable).
                 theta0 = np.zeros(c.n_params)
-                cols = [(ev.residual(c.apply(c.x0, ev.base)) - res0) / float(c.x0[0])]
+                cols = [_moved(ev.residual(c.apply(c.x0, ev.base)), res0, floor) / float(c.x0[0])]
             else:
                 theta0 = np.asarray(c.x0, float)
                 lo, hi = np.asarray(c.lower, float), np.asarray(c.upper, float)
@@ -144,7 +175,7 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                     d = c.step or 0.01 * scale[j]  # Candidate.step
                     th = theta0.copy()
                     th[j] = th[j] + d if th[j] + d <= hi[j] else max(th[j] - d, lo[j])
-                    cols.append((ev.residual(c.apply(th, ev.base)) - res0) / (th[j] - theta0[j]))
+                    cols.append(_moved(ev.residual(c.apply(th, ev.base)), res0, floor) / (th[j] - theta0[j]))
                 if c.command_probe:
                     # a second direction for the one parameter (a delay): the commands acting
                     # later by its step in whole grid steps, what a delay does to the dynamics
@@ -153,7 +184,7 @@ def linear_scores(ev, cands, split, res0, vehicle) -> list[Score]:
                     # families' and true delays were named servo lag (dev 1500, 1584, 1599); the
                     # probe alone lost a 25 Hz ArduSub-rate delay the secant finds (dev 1543)
                     h = grid_steps(c.step, grid_dt(ev)) * grid_dt(ev)
-                    cols.append((ev.residual(replace(ev.base, command_delay_s=h)) - res0) / h)
+                    cols.append(_moved(ev.residual(replace(ev.base, command_delay_s=h)), res0, floor) / h)
         except (VehicleFileError, ZeroDivisionError):
             continue  # a candidate the vehicle cannot take is no evidence either way
         # what the candidate adds to the generalised force, per unit of its parameters: -M0 dr/dtheta
