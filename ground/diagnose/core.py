@@ -248,16 +248,21 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 # scan does not survive `combine`), then in the pair from there
                 start = tuple(fit(ev_fit, oc, split_fit, res0_fit, base=best.model, x0=start).theta)
             pf = fit(ev_fit, combine(best.candidate, oc), split_fit, res0_fit, x0=tuple(best.theta) + tuple(start))
-            if _too_small(oc, pf.theta[best.candidate.n_params:], decide.calibrated_sd(sc, cal),
-                          pf.explained - best.explained, vehicle, pf.delta_holdout - best.delta_holdout):
+            why = _too_small(oc, pf.theta[best.candidate.n_params:], decide.calibrated_sd(sc, cal),
+                             pf.explained - best.explained, vehicle, pf.delta_holdout - best.delta_holdout)
+            if why:
+                _say(progress, f"{oc.effect} not paired: {why}")
                 continue  # the same rules as for a first finding, on its share of the pair
             n1 = best.candidate.n_params
             if n1 and _too_small(best.candidate, pf.theta[:n1], decide.calibrated_sd(by_effect[best.candidate.effect], cal),
                                  best.explained, vehicle, best.delta_holdout):
                 _say(progress, f"{oc.effect} not paired: the pair moves {best.candidate.effect} below what is worth naming")
                 continue  # and the first, moved by the pair, must still be worth naming
-            if pf.delta_holdout - best.delta_holdout > share * best.delta_holdout and (
-                    best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout):
+            gain = pf.delta_holdout - best.delta_holdout
+            if not gain > share * best.delta_holdout:
+                _say(progress, f"{oc.effect} not paired: it adds chi2 -{gain:.1f} held out, under {100 * share:.0f} % "
+                               f"of {best.candidate.effect}'s -{best.delta_holdout:.1f}")
+            elif best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout:
                 best_pair = (pf, oc, sc)
         if best_pair is not None:
             pf, oc, sc = best_pair
