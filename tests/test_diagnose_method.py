@@ -953,26 +953,36 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     """core._standout, from dev 4326's second pass (thrust inflow 108x its threshold, linear
     damping 42.7x, under a restoring moment whose fit dropped 88,000): the inflow, refused by
     its share of the pair alone, is paired when it is SECOND_STANDOUT x its threshold and
-    SECOND_MARGIN x the next candidate, those excluded (not testable, here the wall effect)
-    left out of the ranking; not when an included candidate tops it, not after an azimuth
-    transient (SECOND_MARGIN_AFTER: dev 4330's false buoyancy stood 2.5x the next), not when
-    the top is not among the refused pairs, not under SECOND_STANDOUT x its threshold."""
-    cal = types.SimpleNamespace(threshold={"thrust_inflow": 14.0, "linear_damping": 30.0, "quadratic_damping": 30.0,
-                                           "wall_proximity": 20.0})
-    again = {e: types.SimpleNamespace(statistic=r * cal.threshold[e])
-             for e, r in {"thrust_inflow": 108.4, "linear_damping": 42.7, "quadratic_damping": 42.4,
-                          "wall_proximity": 300.0}.items()}
+    SECOND_MARGIN x the next candidate (those left out of `public`, not testable, do not count);
+    not when another candidate tops it, not after an azimuth transient (SECOND_MARGIN_AFTER: dev
+    4330's false buoyancy stood 2.5x the next), not when the top is not among the refused pairs
+    or is a local effect, not under SECOND_STANDOUT x its threshold, not when a ratio is not
+    finite; a thrust curve and a thruster fault are one name."""
+    ratios = {"thrust_inflow": 108.4, "linear_damping": 42.7, "quadratic_damping": 42.4, "wall_proximity": 300.0,
+              "thrust_curve": 30.0, "thruster_fault": 40.0}
+    cal = types.SimpleNamespace(threshold={e: 14.0 + i for i, e in enumerate(ratios)})
+    score = lambda e, r: types.SimpleNamespace(statistic=r * cal.threshold[e])  # noqa: E731
+    again = {e: score(e, r) for e, r in ratios.items()}
     pair = lambda e: ("fit", types.SimpleNamespace(effect=e), again[e])  # noqa: E731
-    shared = [pair("thrust_inflow"), pair("linear_damping")]
-    assert core._standout(shared, again, cal, {"wall_proximity"}, "restoring_moment", None) == shared[0]
-    assert core._standout(shared, again, cal, set(), "restoring_moment", None) is None  # the wall effect tops it
-    assert core._standout(shared, again, cal, {"wall_proximity"}, "azimuth_transient", None) is None
-    assert core._standout(shared[1:], again, cal, {"wall_proximity"}, "restoring_moment", None) is None
+    shared = [pair("thrust_inflow"), pair("linear_damping"), pair("wall_proximity")]
+    public = {e: e for e in ratios if e != "wall_proximity"} | {"thrust_curve": "thruster_fault"}
+    standout = lambda sh=shared, pub=public, first="restoring_moment", ag=again: core._standout(  # noqa: E731
+        sh, ag, cal, pub, first, None)
+    assert standout() == shared[0]
+    assert standout(pub=public | {"wall_proximity": "wall_proximity"}) is None  # the wall effect tops it, never picked
+    assert standout(first="azimuth_transient") is None
+    assert standout(sh=shared[1:]) is None
     assert core.SECOND_MARGIN * 42.7 < 108.4 < core.SECOND_MARGIN_AFTER["azimuth_transient"] * 42.7
-    low = {"thrust_inflow": types.SimpleNamespace(statistic=9.0 * 14.0), "linear_damping": types.SimpleNamespace(statistic=0.0)}
-    assert core._standout(shared, low, cal, set(), "restoring_moment", None) is None
-    low["thrust_inflow"] = types.SimpleNamespace(statistic=11.0 * 14.0)
-    assert core._standout(shared, low, cal, set(), "restoring_moment", None) == shared[0]
+    assert standout(ag=again | {"thrust_inflow": score("thrust_inflow", 9.0),
+                               "linear_damping": score("linear_damping", 0.0)}) is None
+    assert standout(ag=again | {"thrust_inflow": score("thrust_inflow", 11.0), "linear_damping": score("linear_damping", 0.0),
+                               "quadratic_damping": score("quadratic_damping", 0.0), "thruster_fault": score("thruster_fault", 5.0),
+                               "thrust_curve": score("thrust_curve", 5.0)}) == shared[0]
+    # one name: the thrust curve and the thruster fault at 60x each are one competitor under 54.2
+    assert standout(ag=again | {"thrust_curve": score("thrust_curve", 60.0), "thruster_fault": score("thruster_fault", 60.0)}) is None
+    assert standout(ag=again | {"thrust_curve": score("thrust_curve", 50.0), "thruster_fault": score("thruster_fault", 50.0)}) == shared[0]
+    for bad in (math.nan, math.inf):
+        assert standout(ag=again | {"quadratic_damping": types.SimpleNamespace(statistic=bad)}) is None
 
 
 def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
