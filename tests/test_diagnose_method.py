@@ -1025,6 +1025,33 @@ def sweep_start(tmp_path_factory):
     return read_recording(path)
 
 
+def test_the_first_finding_is_fitted_on_and_kept_only_when_it_still_passes_the_rules(sweep_start):
+    """core._polish on a real window: the reference vehicle flew it (azimuth transient gain 0.0126)
+    and the nominal model has a tenth of that gain. Its fit from the nominal value with the fewest
+    evaluations stops on the way (the trust region starts no wider than the start); fitted on
+    from there it lands near the truth and is kept. With a calibrated sd wider than the
+    correction, the same polished fit fails a first finding's rules (`_too_small`: within one sd
+    of the nominal value) and the short fit is kept, saying why."""
+    w = sweep_start.between(5.0, 25.0)
+    truth = V.effects.azimuth_transient.gain_per_newton
+    nominal = V.with_values({"effects.azimuth_transient.gain_per_newton": 0.1 * truth})
+    ev = Evaluator(w, nominal)
+    res0 = ev.residual(ev.base)
+    split = locate.make_split(ev.traj0, locate.noise_realisation(ev, res0))
+    at = next(c for c in candidates.candidates_for(nominal) if c.effect == "azimuth_transient")
+    assert at.kind == "misestimated" and at.x0 == pytest.approx((0.1 * truth,))
+    short = candidates.fit(ev, at, split, res0, max_iter=0)
+    assert abs(short.theta[0] - truth) > 0.3 * truth, short.theta  # stopped on the way
+    said = []
+    got = core._polish(ev, short, split, res0, np.full(1, 1e-9), nominal, said.append)
+    assert got is not short and abs(got.theta[0] - truth) < 0.1 * truth, got.theta
+    assert got.chi2_train < short.chi2_train and said[-1].startswith("azimuth_transient fitted on: ")
+    said = []
+    kept = core._polish(ev, short, split, res0, np.full(1, 10.0), nominal, said.append)
+    assert kept is short
+    assert said == [said[0]] and said[0].endswith("not kept: its correction is within one sd of the nominal value")
+
+
 def test_motion_capture_position_is_not_locked_out_while_the_filter_settles(sweep_start):
     """Motion-capture position was gated from a window's first sample: on this window (10-20 s of
     a multistep flight) the first accelerometer updates gave the surge velocity a wrong value with

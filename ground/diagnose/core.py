@@ -33,7 +33,7 @@ SECOND_MIN_GAIN_NESTED = 0.15  # ... when it was tested on the first pass only (
 SECOND_STANDOUT = 10.0  # a second refused by its share alone is still paired when its second-pass
 SECOND_MARGIN = 2.0  # S is this many times its threshold and this many times any other's (`_standout`)
 SECOND_MARGIN_AFTER = {"azimuth_transient": 4.0}  # ... after a first whose misfit spreads (_standout)
-POLISH_ITER = 12  # the first finding's fit is run on from where the ranking fit stopped, this many more steps
+POLISH_ITER = 12  # the first finding's fit is run on from where the ranking fit stopped: this many more evaluations (`_polish`)
 SECOND_MORE = 3  # second-pass candidates not fitted in the first round, by held-out drop, fitted in a pair
 SECOND_TANGENT_FAILED = 2  # ... and those whose step fails held out, by S / threshold
 LEAD_S = 2.0  # commands before a window that set its actuators in motion (replay.LeadIn), at least
@@ -235,7 +235,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     final = None
     second_test: dict = {}  # id(the second finding's Fit) -> (its Score, the first effect it was tested with)
     if single:
-        best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, progress)
+        best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, decide.calibrated_sd(
+            by_effect[single[0].candidate.effect], cal), vehicle, progress)  # ranked by the ranking fits
         chosen, final = [best], best
         # a second effect: the candidates scored again with the first finding in the model (the
         # smoother re-run on the fitting windows, `_second_pass`; the first pass's nested score
@@ -480,21 +481,30 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     return Diagnosis(report, traj, res0, res1, windows, fits, shots, mdiag)
 
 
-def _polish(ev, f: Fit, split, res0, progress) -> Fit:
-    """The first finding's fit run on to convergence from where the ranking fit stopped (`fit`
-    caps least squares at a few steps: enough to rank, and the trust region starts no wider than
-    the linear step, so a start far from the truth stops on the way there); kept when its training
-    chi-square is lower. Dev case 4468 (eval block 4432-4731): an azimuth transient's gain
-    stopped at 0.036 against a truth of 0.049, polished 0.049, and the second pass run with the
-    stopped gain had read its misfit as four other effects."""
+def _polish(ev, f: Fit, split, res0, sd, vehicle: Vehicle, progress) -> Fit:
+    """The first finding's fit run on from where the ranking fit stopped (`fit` caps least
+    squares at a few evaluations: enough to rank, and the trust region starts no wider than the
+    linear step, so a start far from the truth stops on the way there), POLISH_ITER more. Kept
+    when its training chi-square is lower and it still passes every rule of a first finding
+    (a held-out drop, `_too_small` with the score's calibrated `sd`): a parameter run on to its
+    bound must not be named unchecked. Dev case 4468 (eval block 4432-4731): an azimuth
+    transient's gain stopped at 0.036 against a truth of 0.049, polished 0.0494; the second pass
+    run with the stopped gain had ten candidates standing 10x their thresholds or more (added
+    mass 870x), none with the polished one."""
     c = f.candidate
     if not c.n_params or c.scan:  # nothing to move, or a scan (its Brent refinement converged)
         return f
     g = fit(ev, c, split, res0, x0=tuple(f.theta), max_iter=POLISH_ITER)
     if not g.chi2_train < f.chi2_train:
         return f
-    _say(progress, f"{c.effect} fitted on to convergence: {_fmt([float(x) for x in f.theta])} -> {_fmt([float(x) for x in g.theta])}, "
-                   f"held-out chi2 -{f.delta_holdout:.1f} -> -{g.delta_holdout:.1f}")
+    how = (f"{_fmt([float(x) for x in f.theta])} -> {_fmt([float(x) for x in g.theta])}, "
+           f"held-out chi2 drop {f.delta_holdout:.1f} -> {g.delta_holdout:.1f}")
+    why = ("it fits worse held out" if not g.delta_holdout > 0
+           else _too_small(c, g.theta, sd, g.explained, vehicle, g.delta_holdout))
+    if why:
+        _say(progress, f"{c.effect} fitted on ({how}) not kept: {why}")
+        return f
+    _say(progress, f"{c.effect} fitted on: {how}")
     return g
 
 
