@@ -262,9 +262,9 @@ def test_lead_seconds_is_five_of_the_slowest_actuator_time_constants():
     root is (-9.88 + sqrt(9.88^2 - 4)) / 2 = -0.10228 rad/s, tau = 9.778 s, so 48.89 s of lead."""
     assert core.lead_seconds(V) == pytest.approx(5 * 2 / (9.88 - np.sqrt(9.88 ** 2 - 4)), abs=1e-6)
     assert core.lead_seconds(V) == pytest.approx(48.889, abs=1e-3)
-    off = V.with_effects(azimuth_transient=False)  # then the motor and servo lags set it (>= LEAD_S)
-    assert core.lead_seconds(off) == pytest.approx(max(core.LEAD_S, 5 * max(V.thruster.motor_time_constant,
-                                                                             V.servo.time_constant)))
+    # the same with the transient off: a candidate switches it on in the same windows (a 2 s lead
+    # had fitted the missing transient's gain 10-44 % high on five dev cases)
+    assert core.lead_seconds(V.with_effects(azimuth_transient=False)) == core.lead_seconds(V)
 
 
 @pytest.mark.slow
@@ -871,14 +871,18 @@ def test_a_lag_whose_linear_step_fails_held_out_is_still_fitted_and_named_first(
 
 
 @pytest.mark.slow
-def test_the_first_finding_is_fitted_on_to_convergence(tmp_path):
-    """Eval 4468 (dev data now): a missing azimuth transient, gain 0.049 N^-1, sweep pilot, motion
-    capture at 100 Hz. The ranking fit (a few least-squares steps from the linear step, its trust
-    region no wider than that start) stopped at 0.036, 26 % short; the first finding is fitted on
-    from there (core._polish) and lands within 5 % of the truth."""
-    row = prove.run_family_case("eval", 4468, tmp_path)
+@pytest.mark.parametrize("index", [4468, 4456])
+def test_a_missing_azimuth_transient_is_fitted_to_its_gain_and_nothing_else(tmp_path, index):
+    """Eval 4468 and 4456 (dev data now): a missing azimuth transient, gain 0.049 N^-1, motion
+    capture (sweep pilot at 100 Hz; legs pilot at 50 Hz). 4468's ranking fit (a few least-squares
+    evaluations from the linear step) stopped at 0.036, 26 % short: the first finding is fitted
+    on from there (core._polish). 4456's converged at 0.065, 34 % high, and a false added mass
+    was paired with it: the windows' lead-in was 2 s, as for a nominal without the transient, so
+    the slow axial-loss mode started short and the gain made up for it (core.lead_seconds now
+    counts the filters a candidate switches on). Both land within 5 % of the truth, alone."""
+    row = prove.run_family_case("eval", index, tmp_path)
     assert row["expect"] == ["azimuth_transient"]
-    assert row["named"][:1] == ["azimuth_transient"], row["named"]
+    assert row["named"] == ["azimuth_transient"], row["named"]
     assert row["param_error"] is not None and row["param_error"] < 0.05, row["param_error"]
     assert row["nrmse_after"] < row["nrmse_before"]
 

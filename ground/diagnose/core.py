@@ -671,12 +671,17 @@ def lead_seconds(vehicle: Vehicle) -> float:
     newton that a 2 s lead-in leaves out, and every window then shows a steady heave force the
     null draws (started from the lead-in's state) do not (eval controls, 2026-11-25). The moment
     filter m1z has a slower pole (-0.049 rad/s) but K s^2 above it: that mode's residue is 4e-4
-    against 6-13 for its other poles, so it is left out."""
+    against 6-13 for its other poles, so it is left out.
+    The filters count whether or not the vehicle has the effect on, as the lags do: a candidate
+    switches a missing transient on in the same windows (candidates_for). Counted only when on,
+    until 2026-11-27, a missing transient was fitted after a 2 s lead-in, its steady axial loss
+    short, and the gain came out 10-44 % high in all five dev cases that showed it (4442, 4456,
+    4503, 4552, 4713; README known gaps)."""
     taus = [vehicle.thruster.motor_time_constant, vehicle.servo.time_constant]
     if vehicle.fixed_thruster is not None:  # fixed two-way thrusters' own motor lag
         taus.append(vehicle.fixed_thruster.time_constant)
     at = vehicle.effects.azimuth_transient
-    if vehicle.effects.on("azimuth_transient"):
+    if vehicle.units:  # vectored jets: joints whose rates drive the transient (fixed thrusters have none)
         for f in (at.f1x, at.f1y, at.f2x, at.f2z):
             for c, d in ((f[3], f[4]), (f[5], f[6])):
                 real = np.roots([1.0, c, d]).real
