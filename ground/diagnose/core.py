@@ -486,8 +486,8 @@ def _polish(ev, f: Fit, split, res0, sd, vehicle: Vehicle, progress) -> Fit:
     squares at a few evaluations: enough to rank, and the trust region starts no wider than the
     linear step, so a start far from the truth stops on the way there), POLISH_ITER more. Kept
     when its training chi-square is lower and it still passes every rule of a first finding
-    (a held-out drop, `_too_small` with the score's calibrated `sd`): a parameter run on to its
-    bound must not be named unchecked. Dev case 4468 (eval block 4432-4731): an azimuth
+    (`_too_small` with the score's calibrated `sd`, whose noise rule asks a held-out drop above
+    Z_GATE sd of a fit's own): a parameter run on to its bound must not be named unchecked. Dev case 4468 (eval block 4432-4731): an azimuth
     transient's gain stopped at 0.036 against a truth of 0.049, polished 0.0494; the second pass
     run with the stopped gain had ten candidates standing 10x their thresholds or more (added
     mass 870x), none with the polished one."""
@@ -499,8 +499,7 @@ def _polish(ev, f: Fit, split, res0, sd, vehicle: Vehicle, progress) -> Fit:
         return f
     how = (f"{_fmt([float(x) for x in f.theta])} -> {_fmt([float(x) for x in g.theta])}, "
            f"held-out chi2 drop {f.delta_holdout:.1f} -> {g.delta_holdout:.1f}")
-    why = ("it fits worse held out" if not g.delta_holdout > 0
-           else _too_small(c, g.theta, sd, g.explained, vehicle, g.delta_holdout))
+    why = _too_small(c, g.theta, sd, g.explained, vehicle, g.delta_holdout)  # (a drop <= 0 is within the noise)
     if why:
         _say(progress, f"{c.effect} fitted on ({how}) not kept: {why}")
         return f
