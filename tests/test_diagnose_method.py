@@ -9,6 +9,7 @@ import json
 import math
 import re
 import types
+import warnings
 
 import numpy as np
 import pytest
@@ -265,6 +266,18 @@ def test_lead_seconds_is_five_of_the_slowest_actuator_time_constants():
     # the same with the transient off: a candidate switches it on in the same windows (a 2 s lead
     # had fitted the missing transient's gain 10-44 % high on five dev cases)
     assert core.lead_seconds(V.with_effects(azimuth_transient=False)) == core.lead_seconds(V)
+
+
+def test_a_filter_pole_at_the_edge_of_zero_waits_the_cap_without_overflow():
+    """A vehicle file may hold subnormal filter coefficients (finite, within range): the slow
+    root is then ~1e-320 rad/s, and 1 / rate overflowed (a RuntimeWarning on stderr, a hostile
+    review's find). The lead-in is the cap, quietly."""
+    f1x = list(V.effects.azimuth_transient.f1x)
+    f1x[3], f1x[4] = 2e-320, 1e-320
+    odd = V.with_effects(azimuth_transient=False).with_values({"effects.azimuth_transient.f1x": f1x})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert core.lead_seconds(odd) == core.LEAD_MAX_S
 
 
 @pytest.mark.slow

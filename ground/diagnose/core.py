@@ -685,7 +685,8 @@ def lead_seconds(vehicle: Vehicle) -> float:
             for c, d in ((f[3], f[4]), (f[5], f[6])):
                 real = np.roots([1.0, c, d]).real
                 if (real < 0).all():  # an unstable or marginal factor has no time constant to wait out
-                    taus.append(float(-1.0 / real.max()))
+                    # (a rate under LEAD_TAUS / LEAD_MAX_S waits the cap: no overflow on a subnormal root)
+                    taus.append(1.0 / max(-float(real.max()), LEAD_TAUS / LEAD_MAX_S))
     return float(np.clip(LEAD_TAUS * max(taus), LEAD_S, LEAD_MAX_S))
 
 
