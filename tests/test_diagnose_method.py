@@ -963,6 +963,21 @@ def test_a_significant_fit_that_removes_a_sliver_of_the_mismatch_is_no_finding(t
     assert "added_mass (its fit removes 1." in summary_text(rep) and "no finding" in summary_text(rep)
 
 
+def test_the_report_states_a_share_of_the_held_out_excess_between_0_and_1():
+    """Eval 5045 (dev data now): its nominal fitted the held-out samples within the noise, so
+    `Fit.explained` divided a drop of 5.1 by no excess (1e-9) and the report listed a negligible
+    linear damping as explaining 5120230188. The report states the share clamped to 0-1, as a
+    finding's explanation does; names reported elsewhere are left out."""
+    from types import SimpleNamespace
+    ld, qd = (next(c for c in core.candidates_for(V) if c.effect == e) for e in ("linear_damping", "quadratic_damping"))
+    why = "its held-out improvement (chi2 -5.1) is within the noise of a 6-parameter fit"
+    small = [(SimpleNamespace(candidate=ld, explained=5.1e9), why), (SimpleNamespace(candidate=qd, explained=-3e9), why)]
+    out = core.negligible(small, set())
+    assert [(n["effect"], n["explained"]) for n in out] == [("linear_damping", 1.0), ("quadratic_damping", 0.0)]
+    assert [n["effect"] for n in core.negligible(small, {"linear_damping"})] == ["quadratic_damping"]
+    assert core.reported_share(0.25) == 0.25
+
+
 def test_a_held_out_improvement_within_the_noise_of_the_fit_is_no_finding():
     """Eval control 2180 (IMU-only, 120 s): an added mass passed its test (60.2 against 56.4) and
     its fit removed all the held-out excess there was, a chi-square drop of 2.1: within the noise

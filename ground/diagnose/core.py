@@ -444,8 +444,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         **({"reversed_by_autopilot": reversed_units} if reversed_units else {}),
         "untestable": untestable,
         "rejected": rejected,
-        "negligible": [{"effect": f.candidate.public, "kind": f.candidate.kind, "explained": round(f.explained, 4),
-                        "why": why} for f, why in small if f.candidate.public not in named | set(rejected)],
+        "negligible": negligible(small, named | set(rejected)),
         "fit": {
             "holdout": {
                 "before": {"total": round(shots["total_before"], 4),
@@ -639,6 +638,21 @@ def _start(s, cands) -> tuple:
     if s.keep is not None:
         c = c.subset(s.keep)
     return c, (tuple(np.clip(s.theta, c.lower, c.upper)) if c.n_params and s.holdout_drop > 0 else None)
+
+
+def reported_share(explained: float) -> float:
+    """A fit's share of the held-out excess as the report states it, 0-1. `Fit.explained` divides
+    by the nominal's excess over the noise floor, which a recording whose nominal already fits
+    within the noise does not have (1e-9): a held-out drop of 5 there read 5e9 in the report
+    (eval 5045, a linear damping listed as negligible)."""
+    return max(0.0, min(explained, 1.0))
+
+
+def negligible(small: list, reported: set) -> list:
+    """The report's `negligible` entries: the (fit, why) of `small` not otherwise reported (named
+    or rejected under the same name)."""
+    return [{"effect": f.candidate.public, "kind": f.candidate.kind, "explained": round(reported_share(f.explained), 4),
+             "why": why} for f, why in small if f.candidate.public not in reported]
 
 
 def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float = math.inf) -> str:
@@ -871,7 +885,7 @@ def _finding(f: Fit, vehicle: Vehicle, score, tested_with: str | None = None, *,
             label = CHANNELS[ch] if ch >= 6 else ax
             if label not in axes:
                 axes.append(label)
-    explained = max(0.0, min(f.explained, 1.0))
+    explained = reported_share(f.explained)
     params = c.parameters(f.theta, vehicle)
     if c.effect == "thrust_curve":  # a table is too long to read in a sentence: its two gains
         ptxt = (f"the forward branch x{f.theta[0]:.3g} and the reverse branch x{f.theta[1]:.3g} "
