@@ -999,8 +999,7 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     damping 42.7x, under a restoring moment whose fit dropped 88,000): the inflow, refused by
     its share of the pair alone, is paired when it is SECOND_STANDOUT x its threshold and
     SECOND_MARGIN x the next candidate (those left out of `public`, not testable, do not count);
-    not when another candidate tops it, not after an azimuth transient (SECOND_MARGIN_AFTER: dev
-    4330's false buoyancy stood 2.5x the next), not when the top is not among the refused pairs
+    not when another candidate tops it, not when the top is not among the refused pairs
     or is a local effect, not under SECOND_STANDOUT x its threshold, not when a ratio is not
     finite; a thrust curve and a thruster fault are one name."""
     ratios = {"thrust_inflow": 108.4, "linear_damping": 42.7, "quadratic_damping": 42.4, "wall_proximity": 300.0,
@@ -1011,13 +1010,12 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     pair = lambda e: ("fit", types.SimpleNamespace(effect=e), again[e])  # noqa: E731
     shared = [pair("thrust_inflow"), pair("linear_damping"), pair("wall_proximity")]
     public = {e: e for e in ratios if e != "wall_proximity"} | {"thrust_curve": "thruster_fault"}
-    standout = lambda sh=shared, pub=public, first="restoring_moment", ag=again: core._standout(  # noqa: E731
-        sh, ag, cal, pub, first, None)
+    standout = lambda sh=shared, pub=public, ag=again: core._standout(sh, ag, cal, pub, None)  # noqa: E731
     assert standout() == shared[0]
     assert standout(pub=public | {"wall_proximity": "wall_proximity"}) is None  # the wall effect tops it, never picked
-    assert standout(first="azimuth_transient") is None
     assert standout(sh=shared[1:]) is None
-    assert core.SECOND_MARGIN * 42.7 < 108.4 < core.SECOND_MARGIN_AFTER["azimuth_transient"] * 42.7
+    assert core.SECOND_MARGIN * 42.7 < 108.4  # the inflow stands out by its margin alone
+    assert standout(ag=again | {"linear_damping": score("linear_damping", 108.4 / core.SECOND_MARGIN + 0.1)}) is None
     assert standout(ag=again | {"thrust_inflow": score("thrust_inflow", 9.0),
                                "linear_damping": score("linear_damping", 0.0)}) is None
     assert standout(ag=again | {"thrust_inflow": score("thrust_inflow", 11.0), "linear_damping": score("linear_damping", 0.0),
