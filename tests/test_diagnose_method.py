@@ -976,6 +976,9 @@ def test_the_report_states_a_share_of_the_held_out_excess_between_0_and_1():
     assert [(n["effect"], n["explained"]) for n in out] == [("linear_damping", 1.0), ("quadratic_damping", 0.0)]
     assert [n["effect"] for n in core.negligible(small, {"linear_damping"})] == ["quadratic_damping"]
     assert core.reported_share(0.25) == 0.25
+    # the share rule's reason, read before the noise rule's: no absurd percentage on the console either
+    assert core._too_small(ld, np.array(ld.x0) * 1.5, np.full(6, 1e-9), -5.1e9, V, -5.1) == \
+        "its fit removes 0.0 % of the held-out mismatch"
 
 
 def test_a_held_out_improvement_within_the_noise_of_the_fit_is_no_finding():

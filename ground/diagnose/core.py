@@ -672,7 +672,7 @@ def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float 
     if decide.within_noise(cand, theta, sd):
         return "its correction is within one sd of the nominal value"
     if explained < MIN_EXPLAINED and cand.effect not in LOCAL_EFFECTS:
-        return f"its fit removes {100 * explained:.1f} % of the held-out mismatch"
+        return f"its fit removes {100 * reported_share(explained):.1f} % of the held-out mismatch"
     p = max(cand.n_params, 1)
     if not drop > Z_GATE * math.sqrt(2.0 * p):
         return f"its held-out improvement (chi2 -{drop:.1f}) is within the noise of a {p}-parameter fit"
