@@ -413,7 +413,8 @@ class Fit:
     chi2_train: float
     chi2_holdout: float
     delta_holdout: float  # chi2 improvement on held-out samples (nominal - candidate)
-    explained: float  # fraction of the held-out excess over noise it removes (drop / 1e-9 when there is none; the report states core.reported_share)
+    explained: float  # fraction of the held-out excess over noise it removes (drop / 1e-9 without an
+    # excess: the report states core.reported_share)
     bic: float  # on training samples, relative to the nominal model
     per_channel: np.ndarray  # held-out chi2 improvement per channel
     residual: np.ndarray = field(repr=False)  # (N, 12) with the fitted correction

@@ -540,10 +540,10 @@ def _standout(shared: list, again: dict, cal, public: dict, progress):
     drop) whose second stands out on the second pass: S at least SECOND_STANDOUT x its threshold
     and SECOND_MARGIN x the next candidate's ratio there; else None. A first effect that dominates
     the held-out mismatch leaves a masked second a small share however strong its own test is;
-    a first finding's imperfect fit spreads into many families at once, so the margin. Ranked by reported name (`public`: effect ->
-    name of the testable candidates that are not the first's namesakes; a thrust curve and a
-    thruster fault are one name, the larger ratio); a ratio that is not finite judges nothing
-    (None); the local effects are never picked (their score counts a step their parameter bounds
+    a first finding's imperfect fit spreads into many families at once, so the margin. Ranked
+    by reported name (`public`: effect -> name of the testable candidates that are not the
+    first's namesakes; a thrust curve and a thruster fault are one name, the larger ratio); a
+    ratio that is not finite judges nothing (None); the local effects are never picked (their score counts a step their parameter bounds
     may not reach: the README's known gaps) but count as the next.
 
     Dev evidence (the 69 masked cases of eval blocks 3832-4431 and 40 of their single-effect cases,
