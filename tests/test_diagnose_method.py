@@ -889,8 +889,8 @@ def test_a_missing_azimuth_transient_is_fitted_to_its_gain_and_nothing_else(tmp_
     """Eval 4468 and 4456 (dev data now): a missing azimuth transient, gain 0.049 N^-1, motion
     capture (sweep pilot at 100 Hz; legs pilot at 50 Hz). At 1082084, 4468's ranking fit (a few
     least-squares evaluations from the linear step) stopped at 0.036, 26 % short: the first
-    finding is fitted on from there (core._polish). 4456's converged at 0.065, 34 % high, and a false added mass
-    was paired with it: the windows' lead-in was 2 s, as for a nominal without the transient, so
+    finding is fitted on from there (core._polish). 4456's converged at 0.065, 34 % high, and a
+    false added mass was paired with it: the windows' lead-in was 2 s, as for a nominal without the transient, so
     the slow axial-loss mode started short and the gain made up for it (core.lead_seconds now
     counts the filters a candidate switches on). Both land within 5 % of the truth, alone."""
     row = prove.run_family_case("eval", index, tmp_path)

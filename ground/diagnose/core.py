@@ -485,10 +485,11 @@ def _polish(ev, f: Fit, split, res0, sd, vehicle: Vehicle, progress) -> Fit:
     linear step, so a start far from the truth stops on the way there), POLISH_ITER more. Kept
     when its training chi-square is lower and it still passes every rule of a first finding
     (`_too_small` with the score's calibrated `sd`, whose noise rule asks a held-out drop above
-    Z_GATE sd of a fit's own): a parameter run on to its bound must not be named unchecked. Dev case 4468 (eval block 4432-4731): an azimuth
-    transient's gain stopped at 0.036 against a truth of 0.049, polished 0.0494; the second pass
-    run with the stopped gain had ten candidates standing 10x their thresholds or more (added
-    mass 870x), none with the polished one."""
+    Z_GATE sd of a fit's own): a parameter run on to its bound must not be named unchecked. Dev
+    case 4468 (eval block 4432-4731): an azimuth transient's gain stopped at 0.036 against a
+    truth of 0.049, polished 0.0494; the second pass run with the stopped gain had ten
+    candidates standing 10x their thresholds or more (added mass 870x), none with the polished
+    one."""
     c = f.candidate
     if not c.n_params or c.scan:  # nothing to move, or a scan (its Brent refinement converged)
         return f
@@ -543,8 +544,9 @@ def _standout(shared: list, again: dict, cal, public: dict, progress):
     a first finding's imperfect fit spreads into many families at once, so the margin. Ranked
     by reported name (`public`: effect -> name of the testable candidates that are not the
     first's namesakes; a thrust curve and a thruster fault are one name, the larger ratio); a
-    ratio that is not finite judges nothing (None); the local effects are never picked (their score counts a step their parameter bounds
-    may not reach: the README's known gaps) but count as the next.
+    ratio that is not finite judges nothing (None); the local effects are never picked (their
+    score counts a step their parameter bounds may not reach: the README's known gaps) but count
+    as the next.
 
     Dev evidence (the 69 masked cases of eval blocks 3832-4431 and 40 of their single-effect cases,
     re-diagnosed as development data on 2026-11-27): five masked seconds scored 17-720x their
