@@ -908,8 +908,9 @@ def test_a_restoring_moment_without_motion_capture_is_estimated_again_with_it_in
     the nominal smoother's trajectory, whose horizontal velocity carries part of the nominal's
     stronger righting moment, they came out 109 % and 162 % off the truth, outside 3 sd, at the
     fit's true minimum on that trajectory (README, block 5032-5331). Estimated again with the
-    finding in the smoother (core._reestimated) both land within 8 % and 3 sd, and the corrected
-    model shot from its own smoother's states fits held out better than the nominal."""
+    finding in the smoother (core._reestimated) both land within 8 % and 3 sd: shot from its own
+    smoother's states the re-estimate fits held out better than the nominal and than the first
+    estimate shot the same way."""
     row = prove.run_family_case("eval", index, tmp_path)
     assert row["expect"] == ["restoring_moment"]
     assert row["named"] == ["restoring_moment"], row["named"]

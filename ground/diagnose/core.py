@@ -234,7 +234,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         _say(progress, f"{f.candidate.effect} not named: {why}")
     chosen: list[Fit] = []
     final = None
-    second_test: dict = {}  # id(the second finding's Fit) -> (its Score, the first effect it was tested with)
+    second_test: dict = {}  # id(the second finding's Fit) -> (that Fit, its Score, the first effect it was tested
+    # with); the Fit is kept to check identity: a Fit made after a rejected pair is freed can reuse its id
     if single:
         best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, decide.calibrated_sd(
             by_effect[single[0].candidate.effect], cal), vehicle, progress)  # ranked by the ranking fits
@@ -284,7 +285,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             # the second finding's confidence and sd are those of its own test, the second pass
             # (only for it: the first round's table, the IMU bias's rank and a finding named
             # alone after a rejected pair keep the first round's)
-            second_test[id(chosen[1])] = (sc, best.candidate.public if again is not None else None)
+            second_test[id(chosen[1])] = (chosen[1], sc, best.candidate.public if again is not None else None)
     # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
     bias_named = any(s.effect == "imu_bias" for s in significant) and (not chosen or bias.statistic / cal.threshold[
@@ -364,28 +365,34 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             _say(progress, f"rejected {effect} alone: " + (
                 "the held-out fit is not better than the nominal's" if math.isfinite(alt["total_before"])
                 else "no held-out stretch long enough to show that the fit is not worse"))
-    if len(chosen) == 1 and final is chosen[0] and unknown is None and not bias_named:
-        # a lone finding estimated again with it in the smoother (`_reestimated`); kept when, shot
-        # from its own smoother's states, it fits held out better than the nominal does from the
-        # nominal's (the before shots are unchanged); otherwise the first estimate stands
+    reestimated = False
+    if (len(chosen) == 1 and unknown is None and not bias_named and cal.draws >= MIN_DRAWS
+            and not traj.estimate.divergences):  # (a report that names nothing needs none)
+        # a lone finding estimated again with it in the smoother (`_reestimated`). Kept when, each
+        # shot from its own smoother's states over the whole recording, it fits held out better
+        # than the nominal (shot from the nominal's, as always) and than the first estimate;
+        # otherwise the first estimate stands. Never a change of the effect named
         again_fit = _reestimated(recs_w, leads, runs, final, split_fit, res0_fit, decide.calibrated_sd(
             by_effect[final.candidate.effect], cal), vehicle, progress)
-        try:
-            ev_a = Evaluator(rec, _sensor_vehicle(again_fit.model), runs=runs) if again_fit is not None else None
-        except (VehicleFileError, replay.ReplayError):
-            ev_a = None
-        if ev_a is not None and not ev_a.traj0.estimate.divergences and len(ev_a.traj0.time_s) == len(traj.time_s):
-            alt = _shoot_holdout(ev, traj, split, ev.base, ev_a.base, None, mdiag, after_ev=ev_a)
-            _say(progress, f"{final.candidate.effect} re-estimated: held-out NRMSE {alt['total_before']:.3f} -> "
-                           f"{alt['total_after']:.3f} (first estimate {shots['total_after']:.3f})")
-            if alt["total_after"] < alt["total_before"]:
+        own = [_own_evaluator(rec, f.model, runs, traj) for f in (final, again_fit)] if again_fit is not None else []
+        if own and all(e is not None for e in own):
+            first_own, alt = (_shoot_holdout(ev, traj, split, ev.base, e.base, None, mdiag, after_ev=e) for e in own)
+            was, now = paired_totals(first_own["nrmse_after"], alt["nrmse_after"])
+            _say(progress, f"{final.candidate.effect} re-estimated: held-out NRMSE, each from its own smoother's "
+                           f"states, {now:.3f} (first estimate {was:.3f}, nominal {alt['total_before']:.3f})")
+            if alt["total_after"] < alt["total_before"] and now < was:
                 single = [again_fit if x is final else x for x in single]  # (Fit holds arrays: is)
-                chosen, final, final_res, shots = [again_fit], again_fit, ev.residual(again_fit.model), alt
+                chosen, final, shots, reestimated = [again_fit], again_fit, alt, True
+                final_res = own[1].residual(own[1].base)  # along its own trajectory, as its shots
+        elif again_fit is not None:
+            _say(progress, f"{final.candidate.effect} re-estimate not kept: the smoother could not run the whole "
+                           "recording with it")
     res1 = final_res
     fits = chosen + [f for f in single if all(f is not c for c in chosen)]  # the report's plots: findings first
     n_fam = len(families)
-    findings = [_finding(f, vehicle, *second_test.get(id(f), (by_effect.get(f.candidate.effect), None)), cal=cal,
-                         n_fam=n_fam) for f in chosen]
+    findings = [_finding(f, vehicle, *(t[1:] if (t := second_test.get(id(f))) is not None and t[0] is f
+                                       else (by_effect.get(f.candidate.effect), None)), cal=cal, n_fam=n_fam)
+                for f in chosen]
     if bias_named:
         # the bias is listed first when its held-out NRMSE alone beats the forces named with it
         # (together), after them otherwise (or when no held-out stretch can say). First whenever
@@ -473,8 +480,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             },
             "holdout_fraction": round(split.holdout_fraction, 3),
             "method": (f"multiple shooting: {SHOOT_S:.0f} s windows re-initialised from the smoothed state "
-                       f"(a finding estimated again with it in the smoother: the corrected model from its own), "
-                       f"inside held-out blocks ({locate.BLOCK_S:.0f} s blocks, 3 of every 10); NRMSE against "
+                       + ("(the finding was estimated again with it in the smoother: the corrected model's windows "
+                          "from its own smoother's states, the nominal's from the nominal's) " if reestimated else "")
+                       + f"inside held-out blocks ({locate.BLOCK_S:.0f} s blocks, 3 of every 10); NRMSE against "
                        f"the measurement smoothed like the replay ({replay.SMOOTH_S} s Savitzky-Golay) with the "
                        "white sensor noise left in it removed in quadrature (variance estimated from the data); "
                        "a signal that does not move above its noise is left out of the total; "
@@ -542,7 +550,7 @@ def _second_pass(recs_w, leads, runs, cm: CorrectedModel, cands, first: str, spl
         evs2 = [Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)]
         ev2 = SegmentedEvaluator(evs2)
         res2 = ev2.residual(ev2.base)
-    except (VehicleFileError, replay.ReplayError):
+    except (VehicleFileError, replay.ReplayError, np.linalg.LinAlgError):
         return None
     if any(e.traj0.estimate.divergences for e in evs2):  # a re-estimate gone astray is no evidence
         return None
@@ -559,6 +567,17 @@ def _sensor_vehicle(cm: CorrectedModel) -> Vehicle:
     c = cm.correction
     return cm.vehicle.with_values({"sensors.gyro_bias": list(c.gyro_bias), "sensors.accel_bias": list(c.accel_bias),
                                    "sensors.delay": float(c.delay_s)})
+
+
+def _own_evaluator(rec, cm: CorrectedModel, runs, traj) -> Evaluator | None:
+    """The whole recording estimated by the smoother with the corrected model `cm` (its held-out
+    shots start from these states), or None when it cannot run it, diverged or lands on another grid."""
+    try:
+        e = Evaluator(rec, _sensor_vehicle(cm), runs=runs)
+    except (VehicleFileError, replay.ReplayError, np.linalg.LinAlgError):
+        return None
+    ok = not e.traj0.estimate.divergences and len(e.traj0.time_s) == len(traj.time_s)
+    return e if ok else None
 
 
 def _reestimated(recs_w, leads, runs, f: Fit, split, res0, sd, vehicle: Vehicle, progress) -> Fit | None:
@@ -588,7 +607,7 @@ def _reestimated(recs_w, leads, runs, f: Fit, split, res0, sd, vehicle: Vehicle,
         try:
             v2 = _sensor_vehicle(g.model)
             evs2 = [Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)]
-        except (VehicleFileError, replay.ReplayError):
+        except (VehicleFileError, replay.ReplayError, np.linalg.LinAlgError):
             break
         if any(e.traj0.estimate.divergences for e in evs2):
             break
