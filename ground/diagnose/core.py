@@ -585,9 +585,10 @@ def _reestimated(recs_w, leads, runs, f: Fit, split, res0, sd, vehicle: Vehicle,
     windows re-estimated by the smoother with the corrected vehicle, the candidate fitted again
     along that trajectory, up to REFIT_PASSES times until no parameter moves more than
     REFIT_SETTLED of its scale. None when it settles within REFIT_SETTLED of the first estimate
-    (the whole-recording smoother the kept one needs is spared) or it cannot be done (a thruster fault,
-    a thrust-curve gain or a commands delay is no vehicle the smoother takes; a scanned delay
-    has nothing to re-estimate; a re-estimate diverged; the first pass broke a finding's rule).
+    (the whole-recording smoother a kept one needs is spared) or when it cannot be done (a
+    thruster fault, a thrust-curve gain or a commands delay is no vehicle the smoother takes; a
+    scanned delay has nothing to re-estimate); the passes stop at a re-estimate that diverged or
+    a fit that breaks a rule of a finding (`_too_small`), keeping the pass before.
 
     Why (dev, eval block 5032-5331 read again): the nominal smoother bends the unmeasured
     horizontal velocity (0.7 m/s off where the truth is 0.01-0.10) so that its motion carries
