@@ -900,6 +900,27 @@ def test_a_missing_azimuth_transient_is_fitted_to_its_gain_and_nothing_else(tmp_
     assert row["nrmse_after"] < row["nrmse_before"]
 
 
+@pytest.mark.parametrize("kind", ["scanned delay", "thruster fault", "commands delay", "no parameter"])
+def test_what_the_smoother_cannot_take_is_not_estimated_again(kind):
+    """core._reestimated returns None before any smoother run for a finding the smoother cannot
+    carry (a thruster fault, a commands delay: no vehicle) or that has nothing to move (a scanned
+    delay's Brent refinement converged; a switch with no parameter). With no fitting windows
+    given, trying would raise."""
+    nominal = load_vehicle()
+    base = candidates.CorrectedModel(nominal)
+    one = dict(keys=(("sensors.delay", None),), x0=(0.0,), lower=(0.0,), upper=(0.3,))
+    cand, cm = {
+        "scanned delay": (candidates.Candidate("sensor_delay", "misestimated", scan=(0.0, 0.1), **one), base),
+        "thruster fault": (candidates.Candidate("thruster_fault", "misestimated", **one),
+                           dataclasses.replace(base, thrust_fraction=(1.0, 1.0, 0.5, 1.0))),
+        "commands delay": (candidates.Candidate("sensor_delay", "misestimated", **one),
+                           dataclasses.replace(base, command_delay_s=0.05)),
+        "no parameter": (candidates.Candidate("wall_proximity", "missing", (), (), (), ()), base),
+    }[kind]
+    f = candidates.Fit(cand, np.zeros(cand.n_params), 0.0, 0.0, 1.0, 1.0, 0.0, np.zeros(12), np.zeros((1, 12)), model=cm)
+    assert core._reestimated([], [], replay.ActuatorRuns(), f, None, None, None, nominal, None) is None
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("index", [5089, 5275])
 def test_a_restoring_moment_without_motion_capture_is_estimated_again_with_it_in_the_smoother(tmp_path, index):
