@@ -938,6 +938,8 @@ def test_a_restoring_moment_without_motion_capture_is_estimated_again_with_it_in
     assert row["param_error"] is not None and row["param_error"] < 0.15, row["param_error"]
     assert row["within_3sd"], row
     assert row["nrmse_after"] < row["nrmse_before"]
+    rep = json.loads((tmp_path / f"eval_{index}.json").read_text())
+    assert "estimated again" in rep["fit"]["method"]  # the re-estimate, not the first fit, is reported
 
 
 @pytest.mark.slow

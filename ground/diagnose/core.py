@@ -235,7 +235,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     chosen: list[Fit] = []
     final = None
     second_test: dict = {}  # id(the second finding's Fit) -> (that Fit, its Score, the first effect it was tested
-    # with); the Fit is kept to check identity: a Fit made after a rejected pair is freed can reuse its id
+    # with); holding the Fit keeps its id from being reused by a Fit made after a rejected pair
     if single:
         best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, decide.calibrated_sd(
             by_effect[single[0].candidate.effect], cal), vehicle, progress)  # ranked by the ranking fits
@@ -374,25 +374,31 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         # otherwise the first estimate stands. Never a change of the effect named
         again_fit = _reestimated(recs_w, leads, runs, final, split_fit, res0_fit, decide.calibrated_sd(
             by_effect[final.candidate.effect], cal), vehicle, progress)
-        own = [_own_evaluator(rec, f.model, runs, traj) for f in (final, again_fit)] if again_fit is not None else []
-        if own and all(e is not None for e in own):
-            first_own, alt = (_shoot_holdout(ev, traj, split, ev.base, e.base, None, mdiag, after_ev=e) for e in own)
+        mine = _own_evaluator(rec, again_fit.model, runs, traj) if again_fit is not None else None
+        alt = _shoot_holdout(ev, traj, split, ev.base, mine.base, None, mdiag, after_ev=mine) if mine else None
+        # the first estimate's own smoother only when the re-estimate beats the nominal
+        first = (_own_evaluator(rec, final.model, runs, traj)
+                 if alt is not None and alt["total_after"] < alt["total_before"] else None)
+        if first is not None:
+            first_own = _shoot_holdout(ev, traj, split, ev.base, first.base, None, mdiag, after_ev=first)
             was, now = paired_totals(first_own["nrmse_after"], alt["nrmse_after"])
             _say(progress, f"{final.candidate.effect} re-estimated: held-out NRMSE, each from its own smoother's "
                            f"states, {now:.3f} (first estimate {was:.3f}, nominal {alt['total_before']:.3f})")
-            if alt["total_after"] < alt["total_before"] and now < was:
+            if now < was:
                 single = [again_fit if x is final else x for x in single]  # (Fit holds arrays: is)
                 chosen, final, shots, reestimated = [again_fit], again_fit, alt, True
-                final_res = own[1].residual(own[1].base)  # along its own trajectory, as its shots
+                final_res = mine.residual(mine.base)  # along its own trajectory, as its shots
         elif again_fit is not None:
-            _say(progress, f"{final.candidate.effect} re-estimate not kept: the smoother could not run the whole "
-                           "recording with it")
+            _say(progress, f"{final.candidate.effect} re-estimate not kept: " + (
+                "the smoother could not run the whole recording with it" if mine is None else
+                f"held-out NRMSE from its own smoother's states {alt['total_after']:.3f}, the nominal's "
+                f"{alt['total_before']:.3f}" if not alt["total_after"] < alt["total_before"] else
+                "the smoother could not run the whole recording with the first estimate"))
     res1 = final_res
     fits = chosen + [f for f in single if all(f is not c for c in chosen)]  # the report's plots: findings first
     n_fam = len(families)
-    findings = [_finding(f, vehicle, *(t[1:] if (t := second_test.get(id(f))) is not None and t[0] is f
-                                       else (by_effect.get(f.candidate.effect), None)), cal=cal, n_fam=n_fam)
-                for f in chosen]
+    findings = [_finding(f, vehicle, *second_test.get(id(f), (None, by_effect.get(f.candidate.effect), None))[1:],
+                         cal=cal, n_fam=n_fam) for f in chosen]
     if bias_named:
         # the bias is listed first when its held-out NRMSE alone beats the forces named with it
         # (together), after them otherwise (or when no held-out stretch can say). First whenever
@@ -608,11 +614,11 @@ def _reestimated(recs_w, leads, runs, f: Fit, split, res0, sd, vehicle: Vehicle,
         try:
             v2 = _sensor_vehicle(g.model)
             evs2 = [Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)]
+            if any(e.traj0.estimate.divergences for e in evs2):
+                break
+            h = fit(SegmentedEvaluator(evs2), c, split, res0, x0=tuple(g.theta), max_iter=POLISH_ITER)
         except (VehicleFileError, replay.ReplayError, np.linalg.LinAlgError):
             break
-        if any(e.traj0.estimate.divergences for e in evs2):
-            break
-        h = fit(SegmentedEvaluator(evs2), c, split, res0, x0=tuple(g.theta), max_iter=POLISH_ITER)
         why = _too_small(c, h.theta, sd, h.explained, vehicle, h.delta_holdout)
         if why:
             _say(progress, f"{c.effect} re-estimated {_fmt([float(x) for x in h.theta])}: not kept, {why}")
