@@ -375,7 +375,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         again_fit = _reestimated(recs_w, leads, runs, final, split_fit, res0_fit, decide.calibrated_sd(
             by_effect[final.candidate.effect], cal), vehicle, progress)
         mine = _own_evaluator(rec, again_fit.model, runs, traj) if again_fit is not None else None
-        alt = _shoot_holdout(ev, traj, split, ev.base, mine.base, None, mdiag, after_ev=mine) if mine else None
+        alt = _shoot_holdout(ev, traj, split, ev.base, mine.base, None, mdiag, after_ev=mine) if mine is not None else None
         # the first estimate's own smoother only when the re-estimate beats the nominal
         first = (_own_evaluator(rec, final.model, runs, traj)
                  if alt is not None and alt["total_after"] < alt["total_before"] else None)
