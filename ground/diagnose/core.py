@@ -549,17 +549,14 @@ def _second_pass(recs_w, leads, runs, cm: CorrectedModel, cands, first: str, spl
     takes (a thruster fault, a thrust-curve gain) or a window's re-estimate diverged.
     The thresholds are the first pass's (the null draws of the nominal model): with the first
     effect in the model, the rest of the recording is a null recording of nearly that vehicle."""
-    if cm.thrust_fraction is not None or cm.curve_gain is not None or cm.command_delay_s:
+    ev2 = _windows_with(recs_w, leads, runs, cm)
+    if ev2 is None:
         return None
     try:
-        v2 = _sensor_vehicle(cm)
-        evs2 = [Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)]
-        ev2 = SegmentedEvaluator(evs2)
         res2 = ev2.residual(ev2.base)
-    except (VehicleFileError, replay.ReplayError, np.linalg.LinAlgError):
+    except (replay.ReplayError, np.linalg.LinAlgError):
         return None
-    if any(e.traj0.estimate.divergences for e in evs2):  # a re-estimate gone astray is no evidence
-        return None
+    v2 = ev2.nominal
     rest = [x for x in cands if x.effect not in (first, "imu_bias")]
     # a family of alternative models (the thruster fault's units): its most likely unit now, as
     # its calibration's statistic is (decide.calibrate); the delay's direction as the first pass's
@@ -573,6 +570,26 @@ def _sensor_vehicle(cm: CorrectedModel) -> Vehicle:
     c = cm.correction
     return cm.vehicle.with_values({"sensors.gyro_bias": list(c.gyro_bias), "sensors.accel_bias": list(c.accel_bias),
                                    "sensors.delay": float(c.delay_s)})
+
+
+def _smoother_takes(cm: CorrectedModel) -> bool:
+    """Whether the corrected model is a vehicle the smoother can run: not a thruster fault, a
+    thrust-curve gain or a commands-delay probe (those act on the commands, not the vehicle file)."""
+    return cm.thrust_fraction is None and cm.curve_gain is None and not cm.command_delay_s
+
+
+def _windows_with(recs_w, leads, runs, cm: CorrectedModel) -> SegmentedEvaluator | None:
+    """The fitting windows re-estimated by the smoother with the corrected model `cm`, or None when
+    the smoother cannot take it (`_smoother_takes`, the file's bounds, a singular step) or a
+    window's re-estimate diverged (a re-estimate gone astray is no evidence)."""
+    if not _smoother_takes(cm):
+        return None
+    try:
+        v2 = _sensor_vehicle(cm)
+        evs2 = [Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)]
+    except (VehicleFileError, replay.ReplayError, np.linalg.LinAlgError):
+        return None
+    return None if any(e.traj0.estimate.divergences for e in evs2) else SegmentedEvaluator(evs2)
 
 
 def _own_evaluator(rec, cm: CorrectedModel, runs, traj) -> Evaluator | None:
@@ -596,28 +613,24 @@ def _reestimated(recs_w, leads, runs, f: Fit, split, res0, sd, vehicle: Vehicle,
     scanned delay has nothing to re-estimate); the passes stop at a re-estimate that diverged or
     a fit that breaks a rule of a finding (`_too_small`), keeping the pass before.
 
-    Why (dev, eval block 5032-5331 read again): the nominal smoother bends the unmeasured
-    horizontal velocity (0.7 m/s off where the truth is 0.01-0.10) so that its motion carries
-    the nominal model's restoring moment; fitted along that trajectory a restoring-moment
-    finding without motion capture stopped 40-162 % off its truth in six cases (5052, 5075,
-    5089, 5248, 5272, 5275), at the scan minimum, not an early stop. The iteration is the
-    expectation-maximisation pattern of filter-error identification (Jategaonkar, Flight Vehicle
-    System Identification, ch. 5: the state estimator re-run with the updated parameters)."""
-    c, cm = f.candidate, f.model
-    if (not c.n_params or c.scan or cm.thrust_fraction is not None or cm.curve_gain is not None
-            or cm.command_delay_s):
+    Why: without motion capture the nominal smoother bends the unmeasured horizontal velocity to
+    carry the nominal's restoring moment, and a fit along it stops off the truth at that
+    trajectory's minimum (README, method item 3, dev block 5032-5331). The iteration is the outer
+    loop of the filter-error method (Jategaonkar, Flight Vehicle System Identification, ch. 5:
+    the state estimator re-run with the updated parameters)."""
+    c = f.candidate
+    if not c.n_params or c.scan or not _smoother_takes(f.model):
         return None
     lo, hi = np.array(c.lower, float), np.array(c.upper, float)
     moved = lambda a, b: float(np.max(np.abs(a.theta - b.theta) / parameter_scale(b.theta, lo, hi)))  # noqa: E731
     g = f
     for k in range(REFIT_PASSES):
+        ev2 = _windows_with(recs_w, leads, runs, g.model)
+        if ev2 is None:
+            break
         try:
-            v2 = _sensor_vehicle(g.model)
-            evs2 = [Evaluator(r, v2, lead, runs) for r, lead in zip(recs_w, leads)]
-            if any(e.traj0.estimate.divergences for e in evs2):
-                break
-            h = fit(SegmentedEvaluator(evs2), c, split, res0, x0=tuple(g.theta), max_iter=POLISH_ITER)
-        except (VehicleFileError, replay.ReplayError, np.linalg.LinAlgError):
+            h = fit(ev2, c, split, res0, x0=tuple(g.theta), max_iter=POLISH_ITER)
+        except (replay.ReplayError, np.linalg.LinAlgError):
             break
         why = _too_small(c, h.theta, sd, h.explained, vehicle, h.delta_holdout)
         if why:
