@@ -408,6 +408,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             alone, forces = paired_totals(
                 _shoot_holdout(ev, traj, split, ev.base, _with_bias(ev.base, bias), None, mdiag)["nrmse_after"],
                 _shoot_holdout(ev, traj, split, ev.base, final.model, None, mdiag)["nrmse_after"])
+            _say(progress, f"imu_bias alone: held-out NRMSE {alone:.3f}; the forces named, without it, {forces:.3f}")
         first = not chosen or alone < forces
         findings.insert(0 if first else len(findings), _bias_finding(bias, cal, n_fam))
     if unknown is not None:
