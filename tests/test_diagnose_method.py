@@ -194,6 +194,33 @@ def test_a_candidate_that_changes_nothing_but_rounding_has_no_evidence(plain):
                       "the recording carries no information on it")
 
 
+def test_the_held_out_blocks_move_to_cover_the_only_surfacing():
+    """A 90 s flight at 10 Hz that surfaces once, at 76-83 s (eval 5580): with the fixed phase the
+    blocks 76-80 s and 80-84 s (the 19th and 20th) are both training, and the surface effect could
+    not be shown held out. Phase 2 holds out the 20th (3 of the 7 s: balance 0.82), phase 3 the
+    19th (4 of 7: 0.61, too little left to fit); the better balance wins. A boundary whose samples
+    are already split, or one no phase can split (one block), keeps phase 0, as does a flight that
+    never comes near."""
+    t = np.arange(0.0, 90.0, 0.1)
+    none = np.zeros_like(t, bool)
+    near = np.column_stack([(t >= 76.0) & (t < 83.0), none])
+    assert locate.block_shift([t], [near]) == 2
+    long = np.column_stack([t < 40.0, none])  # ten blocks, three held out at phase 0
+    assert locate.block_shift([t], [long]) == 0
+    one = np.column_stack([(t >= 8.0) & (t < 12.0), none])  # one block: held out or fitted, whole
+    assert locate.block_shift([t], [one]) == 0
+    assert locate.block_shift([t], [np.column_stack([none, none])]) == 0 and locate.block_shift([t], None) == 0
+    # two windows of one recording: blocks count from the first window's start
+    a, b = t < 40.0, t >= 60.0
+    assert locate.block_shift([t[a], t[b]], [near[a], near[b]]) == 2
+    # the floor counts as the surface does: 12-20 s (blocks 3 and 4) are both training at phase
+    # 0, phase 1 holds out the second
+    floor = np.column_stack([none, (t >= 12.0) & (t < 20.0)])
+    assert locate.block_shift([t], [floor]) == 1
+    both = np.column_stack([near[:, 0], floor[:, 1]])  # the worse-balanced of the two decides
+    assert locate.block_shift([t], [both]) == 2
+
+
 def test_rounding_is_judged_per_channel_against_its_size_not_one_wild_sample():
     rng = np.random.default_rng(0)
     r0 = np.column_stack([rng.normal(0, 1.0, 1000), rng.normal(0, 1e-3, 1000), np.full(1000, np.nan)])

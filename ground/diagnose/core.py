@@ -141,7 +141,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         _say(progress, f"the log's MOT_n_DIRECTION reverse thruster(s) {reversed_units}: the model pushes them the other way")
     res0 = ev.residual(ev.base)
     noise = locate.noise_realisation(ev, res0)
-    split = locate.make_split(traj, noise)
+    split = locate.make_split(traj, noise, locate.near_boundaries(traj, vehicle))
     p0 = model.pack_params(vehicle)
     act0 = ev.actuators(traj, p0, ev.base)
     windows = locate.flag_windows(traj, res0, noise, split, vehicle, act0)
@@ -162,7 +162,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     evs = [Evaluator(r, vehicle, lead, runs) for r, lead in zip(recs_w, leads)]
     ev_fit = SegmentedEvaluator(evs)
     res0_fit = ev_fit.residual(ev_fit.base)
-    split_fit = locate.make_split([e.traj0 for e in evs], [locate.noise_realisation(e, e.residual(e.base)) for e in evs])
+    split_fit = locate.make_split([e.traj0 for e in evs], [locate.noise_realisation(e, e.residual(e.base)) for e in evs],
+                                  [locate.near_boundaries(e.traj0, vehicle) for e in evs])
     # a position measurement over every fitting window: the only one that sees a horizontal current
     over_ground = all(e.traj0.has_mocap for e in evs)
     cands = candidates_for(vehicle, over_ground)
@@ -938,7 +939,7 @@ def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
         if not (near & (w > 0.05)).any():
             why = f"no heave motion within 0.3 m of the floor ({e.floor_depth:.2f} m)"
     elif effect == "surface_proximity":
-        if (z - e.surface_depth).min() > 1.5 * R:
+        if not locate.near_boundaries(traj, vehicle)[:, 0].any():
             why = f"never within {1.5 * R:.2f} m of the surface"
     elif effect in ("linear_damping", "quadratic_damping", "thrust_inflow", "current"):
         if speed.max() < 0.15:

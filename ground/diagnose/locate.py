@@ -28,6 +28,8 @@ Z_FLAG = 5.0
 BIN_S = 1.0
 BLOCK_S = 4.0
 HOLDOUT_BLOCKS = (2, 5, 8)  # of every 10 blocks: 30 % held out, spread over the whole run
+HOLDOUT_SHARE = len(HOLDOUT_BLOCKS) / 10
+MIN_NEAR_BALANCE = 2 / 3  # near the surface (or floor): 20-77 % of the samples held out, or the phase moves (block_shift)
 DECIMATE_S = 0.05
 EDGE_S = 1.0
 NEFF_MAX_LAG_S = 5.0
@@ -82,13 +84,56 @@ def noise_realisation(ev: Evaluator, res0: np.ndarray) -> np.ndarray:
     return noisy.residual(noisy.base) - res0
 
 
-def make_split(trajs, noises) -> Split:
-    """Train/holdout decimated indices (blocks of BLOCK_S, HOLDOUT_BLOCKS of every 10 held out).
+def near_boundaries(traj: replay.Trajectory, vehicle: Vehicle) -> np.ndarray:
+    """(N, 2) bool: within 1.5 R of the surface, within 2 R of the floor: where the surface and
+    the wall effects act (spec 4), the `regimes` tags and `make_split`'s strata."""
+    e = vehicle.environment
+    R = vehicle.body.radius
+    z = traj.pos_ned_m[:, 2]
+    return np.column_stack([z - e.surface_depth < 1.5 * R, e.floor_depth - z < 2.0 * R])
+
+
+def block_shift(times, near) -> int:
+    """The phase (0-9) of the held-out blocks of the samples at `times` (a list of arrays, s).
+    Stratified cross-validation (Kohavi 1995): the surface and the wall act only near them
+    (`near`: per array, its near_boundaries), so each boundary the vehicle visits should be both
+    fitted and tested. A boundary's balance is min(held / HOLDOUT_SHARE, trained / (1 -
+    HOLDOUT_SHARE)) of its samples, capped at 1; phase 0 is kept while every visited boundary's
+    is at least MIN_NEAR_BALANCE, otherwise the phase with the best worst balance (the smallest
+    such phase; 0 unless it does better). With phase 0 only, the only surfacing of a 90 s flight
+    fell wholly in training blocks, the surface effect stood at 276x its threshold and its fit
+    moved nothing held out (eval 5580); holding all of it out instead left nothing to fit (the
+    first version of this rule: the surface effect and a wall effect became untestable, dev
+    5580 and 5505). The phase comes from the depth alone, never from a residual."""
+    if near is None:
+        return 0
+    t = np.concatenate(times) - times[0][0]
+    n = np.concatenate([np.asarray(m, bool) for m in near])
+    cols = [c for c in range(n.shape[1]) if n[:, c].any()]
+    if not cols:
+        return 0
+
+    def worst(shift):
+        held = np.isin(((t // BLOCK_S).astype(int) + shift) % 10, HOLDOUT_BLOCKS)
+        return min(min(h / HOLDOUT_SHARE, (1.0 - h) / (1.0 - HOLDOUT_SHARE), 1.0)
+                   for h in (float(held[n[:, c]].mean()) for c in cols))
+
+    balance = [worst(s) for s in range(10)]
+    if balance[0] >= MIN_NEAR_BALANCE or max(balance) <= balance[0]:
+        return 0
+    return int(np.argmax(balance))
+
+
+def make_split(trajs, noises, near=None) -> Split:
+    """Train/holdout decimated indices (blocks of BLOCK_S, HOLDOUT_BLOCKS of every 10 held out,
+    at the phase `block_shift` picks from `near`: per trajectory, its `near_boundaries`).
 
     `trajs` and `noises` may be lists (segments of one recording, concatenated in that order).
     """
     if isinstance(trajs, replay.Trajectory):
         trajs, noises = [trajs], [noises]
+        near = None if near is None else [near]
+    shift = block_shift([tr.time_s for tr in trajs], near)
     train, hold, idx_all, masks = [], [], [], []
     off = 0
     for traj in trajs:
@@ -96,7 +141,7 @@ def make_split(trajs, noises) -> Split:
         step = max(1, int(round(DECIMATE_S / traj.dt_s)))
         idx = np.arange(0, len(t), step)
         idx = idx[(t[idx] >= EDGE_S) & (t[idx] <= t[-1] - EDGE_S)]
-        block = ((traj.time_s - trajs[0].time_s[0]) // BLOCK_S).astype(int) % 10
+        block = (((traj.time_s - trajs[0].time_s[0]) // BLOCK_S).astype(int) + shift) % 10
         hold_mask = np.isin(block, HOLDOUT_BLOCKS)
         train.append(idx[~hold_mask[idx]] + off)
         hold.append(idx[hold_mask[idx]] + off)
@@ -184,13 +229,11 @@ def regimes(traj: replay.Trajectory, vehicle: Vehicle, t0: float, t1: float, act
     sel = (traj.time_s >= t0) & (traj.time_s < t1)
     if not sel.any():
         return []
-    e = vehicle.environment
-    R = vehicle.body.radius
-    z = traj.pos_ned_m[sel, 2]
+    near = near_boundaries(traj, vehicle)[sel]
     tags = []
-    if (z - e.surface_depth).min() < 1.5 * R:
+    if near[:, 0].any():
         tags.append("near surface")
-    if (e.floor_depth - z).min() < 2.0 * R:
+    if near[:, 1].any():
         tags.append("near floor")
     speed = np.linalg.norm(traj.nu[sel, :3], axis=1)
     if speed.max() > 0.15:
