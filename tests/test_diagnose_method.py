@@ -196,29 +196,52 @@ def test_a_candidate_that_changes_nothing_but_rounding_has_no_evidence(plain):
 
 def test_the_held_out_blocks_move_to_cover_the_only_surfacing():
     """A 90 s flight at 10 Hz that surfaces once, at 76-83 s (eval 5580): with the fixed phase the
-    blocks 76-80 s and 80-84 s (the 19th and 20th) are both training, and the surface effect could
-    not be shown held out. Phase 2 holds out the 20th (3 of the 7 s: balance 0.82), phase 3 the
-    19th (4 of 7: 0.61, too little left to fit); the better balance wins. A boundary whose samples
-    are already split, or one no phase can split (one block), keeps phase 0, as does a flight that
-    never comes near."""
+    blocks 76-80 s and 80-84 s (indices 19 and 20) are both training, and the surface effect
+    could not be shown held out. Phase 2 holds out block 20 (3 of the 7 s: balance 0.82), phase
+    3 block 19 (4 of 7: 0.61, too little left to fit); the better balance wins. A boundary whose
+    samples are already split, or one no phase can split (one block), keeps phase 0, as does a
+    flight that never comes near. Only the samples the fits use count: EDGE_S in from each end
+    of each fitting window."""
     t = np.arange(0.0, 90.0, 0.1)
     none = np.zeros_like(t, bool)
+    whole = [(0.0, 90.0)]
     near = np.column_stack([(t >= 76.0) & (t < 83.0), none])
-    assert locate.block_shift([t], [near]) == 2
+    assert locate.block_shift(t, near, whole) == 2
     long = np.column_stack([t < 40.0, none])  # ten blocks, three held out at phase 0
-    assert locate.block_shift([t], [long]) == 0
+    assert locate.block_shift(t, long, whole) == 0
     one = np.column_stack([(t >= 8.0) & (t < 12.0), none])  # one block: held out or fitted, whole
-    assert locate.block_shift([t], [one]) == 0
-    assert locate.block_shift([t], [np.column_stack([none, none])]) == 0 and locate.block_shift([t], None) == 0
-    # two windows of one recording: blocks count from the first window's start
-    a, b = t < 40.0, t >= 60.0
-    assert locate.block_shift([t[a], t[b]], [near[a], near[b]]) == 2
+    assert locate.block_shift(t, one, whole) == 0
+    assert locate.block_shift(t, np.column_stack([none, none]), whole) == 0
+    # windows: the surfacing outside them does not count, nor their first and last second
+    assert locate.block_shift(t, near, [(0.0, 40.0), (60.0, 90.0)]) == 2
+    assert locate.block_shift(t, near, [(0.0, 40.0)]) == 0
+    assert locate.block_shift(t, near, [(70.0, 80.0)]) == 0  # 76-79 s: block 19 alone
+    assert locate.block_shift(t, near, [(70.0, 80.0), (80.0, 90.0)]) == 2  # 76-79 and 81-83 s
     # the floor counts as the surface does: 12-20 s (blocks 3 and 4) are both training at phase
     # 0, phase 1 holds out the second
     floor = np.column_stack([none, (t >= 12.0) & (t < 20.0)])
-    assert locate.block_shift([t], [floor]) == 1
+    assert locate.block_shift(t, floor, whole) == 1
     both = np.column_stack([near[:, 0], floor[:, 1]])  # the worse-balanced of the two decides
-    assert locate.block_shift([t], [both]) == 2
+    assert locate.block_shift(t, both, whole) == 2
+
+
+def test_the_fitting_windows_and_the_whole_recording_hold_out_the_same_blocks():
+    """The fits train on the windows' training blocks and the held-out shooting shows the whole
+    recording's held-out blocks: at any phase they must be the same blocks of time, or a finding
+    is shown on what it was fitted on (a review's find: each split had picked its own phase, and
+    the windows counted their blocks from the first window's start)."""
+    dt = 0.02
+    t = np.arange(0.0, 200.0, dt)
+    traj = types.SimpleNamespace(time_s=t, dt_s=dt, has_mocap=False)
+    spans = [(30.0, 40.0), (70.0, 80.0), (150.0, 160.0)]  # the first window is not at the start
+    wins = [types.SimpleNamespace(time_s=t[(t >= a) & (t < b)], dt_s=dt, has_mocap=False) for a, b in spans]
+    noise = lambda n: np.random.default_rng(0).normal(size=(n, 12))  # noqa: E731
+    for shift in (0, 3, 7):
+        whole = locate.make_split([traj], [noise(len(t))], shift)
+        fit = locate.make_split(wins, [noise(len(w.time_s)) for w in wins], shift, origin=t[0])
+        in_wins = np.concatenate([w.time_s for w in wins])
+        np.testing.assert_array_equal(fit.holdout_mask, whole.holdout_mask[np.searchsorted(t, in_wins)])
+        assert 0.0 < fit.holdout_mask.mean() < 1.0
 
 
 def test_rounding_is_judged_per_channel_against_its_size_not_one_wild_sample():

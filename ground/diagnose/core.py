@@ -141,13 +141,15 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         _say(progress, f"the log's MOT_n_DIRECTION reverse thruster(s) {reversed_units}: the model pushes them the other way")
     res0 = ev.residual(ev.base)
     noise = locate.noise_realisation(ev, res0)
-    split = locate.make_split(traj, noise, locate.near_boundaries(traj, vehicle))
+    spans = fit_windows(rec, max_fit_s, vehicle)
+    # one phase of the held-out blocks for the fitting windows and the whole recording alike
+    shift = locate.block_shift(traj.time_s, locate.near_boundaries(traj, vehicle), spans)
+    split = locate.make_split(traj, noise, shift)
     p0 = model.pack_params(vehicle)
     act0 = ev.actuators(traj, p0, ev.base)
     windows = locate.flag_windows(traj, res0, noise, split, vehicle, act0)
     _say(progress, f"{len(windows)} window(s) above the noise floor")
     # --- candidates, scored on short windows spread over the recording (the null draws re-fly them)
-    spans = fit_windows(rec, max_fit_s, vehicle)
     recs_w = []
     for a, b in spans:  # a window whose streams do not overlap enough is left out
         w = rec.between(a, b)
@@ -163,7 +165,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     ev_fit = SegmentedEvaluator(evs)
     res0_fit = ev_fit.residual(ev_fit.base)
     split_fit = locate.make_split([e.traj0 for e in evs], [locate.noise_realisation(e, e.residual(e.base)) for e in evs],
-                                  [locate.near_boundaries(e.traj0, vehicle) for e in evs])
+                                  shift, origin=traj.time_s[0])
     # a position measurement over every fitting window: the only one that sees a horizontal current
     over_ground = all(e.traj0.has_mocap for e in evs)
     cands = candidates_for(vehicle, over_ground)
@@ -490,7 +492,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             "method": (f"multiple shooting: {SHOOT_S:.0f} s windows re-initialised from the smoothed state "
                        + ("(the finding was estimated again with it in the smoother: the corrected model's windows "
                           "from its own smoother's states, the nominal's from the nominal's) " if reestimated else "")
-                       + f"inside held-out blocks ({locate.BLOCK_S:.0f} s blocks, 3 of every 10); NRMSE against "
+                       + f"inside held-out blocks ({locate.BLOCK_S:.0f} s blocks, 3 of every 10"
+                       + (f", moved {shift} blocks to split the stretches near the surface or floor" if shift else "")
+                       + "); NRMSE against "
                        f"the measurement smoothed like the replay ({replay.SMOOTH_S} s Savitzky-Golay) with the "
                        "white sensor noise left in it removed in quadrature (variance estimated from the data); "
                        "a signal that does not move above its noise is left out of the total; "

@@ -93,28 +93,34 @@ def near_boundaries(traj: replay.Trajectory, vehicle: Vehicle) -> np.ndarray:
     return np.column_stack([z - e.surface_depth < 1.5 * R, e.floor_depth - z < 2.0 * R])
 
 
-def block_shift(times, near) -> int:
-    """The phase (0-9) of the held-out blocks of the samples at `times` (a list of arrays, s).
-    Stratified cross-validation (Kohavi 1995): the surface and the wall act only near them
-    (`near`: per array, its near_boundaries), so each boundary the vehicle visits should be both
-    fitted and tested. A boundary's balance is min(held / HOLDOUT_SHARE, trained / (1 -
-    HOLDOUT_SHARE)) of its samples, capped at 1; phase 0 is kept while every visited boundary's
-    is at least MIN_NEAR_BALANCE, otherwise the phase with the best worst balance (the smallest
-    such phase; 0 unless it does better). With phase 0 only, the only surfacing of a 90 s flight
-    fell wholly in training blocks, the surface effect stood at 276x its threshold and its fit
-    moved nothing held out (eval 5580); holding all of it out instead left nothing to fit (the
-    first version of this rule: the surface effect and a wall effect became untestable, dev
-    5580 and 5505). The phase comes from the depth alone, never from a residual."""
-    if near is None:
-        return 0
-    t = np.concatenate(times) - times[0][0]
-    n = np.concatenate([np.asarray(m, bool) for m in near])
+def block_shift(time_s, near, spans) -> int:
+    """The phase (0-9) of the held-out blocks (counted from time_s[0]) for a recording sampled at
+    `time_s` whose `near_boundaries` are `near`, fitted on the windows `spans` [(t0, t1)].
+    Stratified cross-validation (Kohavi 1995): the surface and wall effects are largest near
+    them, so each boundary the vehicle visits inside the fitting windows (their samples that
+    `make_split` uses: EDGE_S in from each end) should be both fitted and tested. A boundary's
+    balance is min(held / HOLDOUT_SHARE, trained / (1 - HOLDOUT_SHARE)) of its samples, capped
+    at 1; phase 0 is kept while every visited boundary's is at least MIN_NEAR_BALANCE, otherwise
+    the phase with the best worst balance (the smallest such phase; 0 unless it does better).
+    The one phase serves the windows and the whole recording alike (`make_split`), so what the
+    fits train on is never what the held-out shooting shows. With phase 0 only, the only
+    surfacing of a 90 s flight fell wholly in training blocks, the surface effect stood at 276x
+    its threshold and its fit moved nothing held out (eval 5580); holding all of it out instead
+    left nothing to fit (the first version of this rule: the surface effect and a wall effect
+    became untestable, dev 5580 and 5505). The phase comes from the depth alone, never from a
+    residual."""
+    t = np.asarray(time_s, float)
+    used = np.zeros(len(t), bool)
+    for a, b in spans:
+        used |= (t >= a + EDGE_S) & (t <= b - EDGE_S)
+    n = np.asarray(near, bool)[used]
     cols = [c for c in range(n.shape[1]) if n[:, c].any()]
     if not cols:
         return 0
+    blocks = ((t[used] - t[0]) // BLOCK_S).astype(int)
 
     def worst(shift):
-        held = np.isin(((t // BLOCK_S).astype(int) + shift) % 10, HOLDOUT_BLOCKS)
+        held = np.isin((blocks + shift) % 10, HOLDOUT_BLOCKS)
         return min(min(h / HOLDOUT_SHARE, (1.0 - h) / (1.0 - HOLDOUT_SHARE), 1.0)
                    for h in (float(held[n[:, c]].mean()) for c in cols))
 
@@ -124,16 +130,16 @@ def block_shift(times, near) -> int:
     return int(np.argmax(balance))
 
 
-def make_split(trajs, noises, near=None) -> Split:
+def make_split(trajs, noises, shift: int = 0, origin: float | None = None) -> Split:
     """Train/holdout decimated indices (blocks of BLOCK_S, HOLDOUT_BLOCKS of every 10 held out,
-    at the phase `block_shift` picks from `near`: per trajectory, its `near_boundaries`).
+    at the phase `shift` (block_shift), blocks counted from `origin`: the first sample's time
+    unless given; the fitting windows count from the recording's start, as its whole split does).
 
     `trajs` and `noises` may be lists (segments of one recording, concatenated in that order).
     """
     if isinstance(trajs, replay.Trajectory):
         trajs, noises = [trajs], [noises]
-        near = None if near is None else [near]
-    shift = block_shift([tr.time_s for tr in trajs], near)
+    origin = trajs[0].time_s[0] if origin is None else origin
     train, hold, idx_all, masks = [], [], [], []
     off = 0
     for traj in trajs:
@@ -141,7 +147,7 @@ def make_split(trajs, noises, near=None) -> Split:
         step = max(1, int(round(DECIMATE_S / traj.dt_s)))
         idx = np.arange(0, len(t), step)
         idx = idx[(t[idx] >= EDGE_S) & (t[idx] <= t[-1] - EDGE_S)]
-        block = (((traj.time_s - trajs[0].time_s[0]) // BLOCK_S).astype(int) + shift) % 10
+        block = (((traj.time_s - origin) // BLOCK_S).astype(int) + shift) % 10
         hold_mask = np.isin(block, HOLDOUT_BLOCKS)
         train.append(idx[~hold_mask[idx]] + off)
         hold.append(idx[hold_mask[idx]] + off)
