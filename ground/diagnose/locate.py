@@ -86,7 +86,8 @@ def noise_realisation(ev: Evaluator, res0: np.ndarray) -> np.ndarray:
 
 def near_boundaries(traj: replay.Trajectory, vehicle: Vehicle) -> np.ndarray:
     """(N, 2) bool: within 1.5 R of the surface, within 2 R of the floor: where the surface and
-    the wall effects act (spec 4), the `regimes` tags and `make_split`'s strata."""
+    the wall effects are largest (spec 4; the surface's acts above R only), the `regimes` tags
+    and `block_shift`'s strata."""
     e = vehicle.environment
     R = vehicle.body.radius
     z = traj.pos_ned_m[:, 2]
