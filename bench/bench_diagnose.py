@@ -66,7 +66,8 @@ def main() -> int:
     print(f"null draws: {cal.get('null_draws')}; untestable: {[u['effect'] for u in diag.report.get('untestable', [])]}")
     f = diag.report["findings"]
     print(f"named:     {f[0]['effect'] if f else 'nothing'}; held-out NRMSE "
-          f"{diag.report['fit']['holdout']['before']['total']:.3f} -> {diag.report['fit']['holdout']['after']['total']:.3f}")
+          f"{diag.report['fit']['holdout']['before']['total']:.3f} -> {diag.report['fit']['holdout']['after']['total']:.3f}"
+          f" (held-out blocks {'moved near a boundary' if 'moved' in diag.report['fit']['method'] else 'at phase 0'})")
     return 0
 
 
