@@ -67,7 +67,7 @@ def main() -> int:
     f = diag.report["findings"]
     print(f"named:     {f[0]['effect'] if f else 'nothing'}; held-out NRMSE "
           f"{diag.report['fit']['holdout']['before']['total']:.3f} -> {diag.report['fit']['holdout']['after']['total']:.3f}"
-          f" (held-out blocks {'moved near a boundary' if 'moved' in diag.report['fit']['method'] else 'at phase 0'})")
+          f" (held-out blocks moved {diag.report['fit']['holdout_phase']} near a boundary)")
     return 0
 
 

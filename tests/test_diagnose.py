@@ -252,6 +252,7 @@ def test_cli_names_buoyancy_and_writes_the_spec_report(buoyant_run):
     assert all(set(w) >= {"t0", "t1", "axes", "score"} for w in rep["mismatch"]["windows"])
     assert set(rep["fit"]["holdout"]) >= {"before", "after"} and "total" in rep["fit"]["holdout"]["before"]
     assert 0 < rep["fit"]["holdout_fraction"] < 1
+    assert rep["fit"]["holdout_phase"] in range(10)  # locate.block_shift
     f = rep["findings"][0]
     assert set(f) >= {"effect", "kind", "confidence", "parameters", "explanation"}
     assert f["effect"] == "buoyancy" and f["kind"] == "misestimated"

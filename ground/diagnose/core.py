@@ -392,11 +392,14 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 chosen, final, shots, reestimated = [again_fit], again_fit, alt, True
                 final_res = mine.residual(mine.base)  # along its own trajectory, as its shots
         elif again_fit is not None:
-            _say(progress, f"{final.candidate.effect} re-estimate not kept: " + (
-                "the smoother could not run the whole recording with it" if mine is None else
-                f"held-out NRMSE from its own smoother's states {alt['total_after']:.3f}, the nominal's "
-                f"{alt['total_before']:.3f}" if not alt["total_after"] < alt["total_before"] else
-                "the smoother could not run the whole recording with the first estimate"))
+            if mine is None:
+                why = "the smoother could not run the whole recording with it"
+            elif not alt["total_after"] < alt["total_before"]:
+                why = (f"held-out NRMSE from its own smoother's states {alt['total_after']:.3f}, "
+                       f"the nominal's {alt['total_before']:.3f}")
+            else:
+                why = "the smoother could not run the whole recording with the first estimate"
+            _say(progress, f"{final.candidate.effect} re-estimate not kept: {why}")
     res1 = final_res
     fits = chosen + [f for f in single if all(f is not c for c in chosen)]  # the report's plots: findings first
     n_fam = len(families)
@@ -489,6 +492,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 "raw": {"before": round(shots["total_raw_before"], 4), "after": round(shots["total_raw_after"], 4)},
             },
             "holdout_fraction": round(split.holdout_fraction, 3),
+            "holdout_phase": shift,  # blocks the held-out pattern moved (locate.block_shift)
             "method": (f"multiple shooting: {SHOOT_S:.0f} s windows re-initialised from the smoothed state "
                        + ("(the finding was estimated again with it in the smoother: the corrected model's windows "
                           "from its own smoother's states, the nominal's from the nominal's) " if reestimated else "")
@@ -853,7 +857,7 @@ def _insufficient(rec, vehicle, reason: str, t_start: float) -> Diagnosis:
         "rejected": [],
         "negligible": [],
         "fit": {"holdout": {"before": {"total": nan}, "after": {"total": nan}, "raw": {"before": nan, "after": nan}},
-                "holdout_fraction": 0.0, "method": "none: too little data"},
+                "holdout_fraction": 0.0, "holdout_phase": 0, "method": "none: too little data"},
         "candidates": [{"effect": c.public, "kind": c.kind, "statistic": None, "threshold": None,
                         "heldout_chi2_drop": None, "confidence": None, "testable": False}
                        for c in cands],
@@ -944,7 +948,7 @@ def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
             why = f"no heave motion within 0.3 m of the floor ({e.floor_depth:.2f} m)"
     elif effect == "surface_proximity":
         if not locate.near_boundaries(traj, vehicle)[:, 0].any():
-            why = f"never within {1.5 * R:.2f} m of the surface"
+            why = f"never within {locate.NEAR_SURFACE_R * R:.2f} m of the surface"
     elif effect in ("linear_damping", "quadratic_damping", "thrust_inflow", "current"):
         if speed.max() < 0.15:
             why = f"speed never above 0.15 m/s (max {speed.max():.2f}): " + {

@@ -29,6 +29,8 @@ BIN_S = 1.0
 BLOCK_S = 4.0
 HOLDOUT_BLOCKS = (2, 5, 8)  # of every 10 blocks: 30 % held out, spread over the whole run
 HOLDOUT_SHARE = len(HOLDOUT_BLOCKS) / 10
+NEAR_SURFACE_R = 1.5  # "near the surface": within this many hull radii (near_boundaries)
+NEAR_FLOOR_R = 2.0  # "near the floor": within this many hull radii
 MIN_NEAR_BALANCE = 2 / 3  # near the surface (or floor): 20-53 % of the samples held out, or the phase moves (block_shift)
 DECIMATE_S = 0.05
 EDGE_S = 1.0
@@ -85,13 +87,14 @@ def noise_realisation(ev: Evaluator, res0: np.ndarray) -> np.ndarray:
 
 
 def near_boundaries(traj: replay.Trajectory, vehicle: Vehicle) -> np.ndarray:
-    """(N, 2) bool: within 1.5 R of the surface, within 2 R of the floor: where the surface and
-    the wall effects are largest (spec 4; the surface's acts above R only), the `regimes` tags
-    and `block_shift`'s strata."""
+    """(N, 2) bool: within NEAR_SURFACE_R hull radii of the surface, within NEAR_FLOOR_R of the
+    floor: where the surface and wall effects are largest (spec 4: the submerged fraction is below
+    1 only above R; the wall factor 1 + k (R/d)^3 is 1 + k/8 at d = 2 R), the `regimes` tags and
+    `block_shift`'s strata."""
     e = vehicle.environment
     R = vehicle.body.radius
     z = traj.pos_ned_m[:, 2]
-    return np.column_stack([z - e.surface_depth < 1.5 * R, e.floor_depth - z < 2.0 * R])
+    return np.column_stack([z - e.surface_depth < NEAR_SURFACE_R * R, e.floor_depth - z < NEAR_FLOOR_R * R])
 
 
 def block_shift(time_s, near, spans) -> int:
