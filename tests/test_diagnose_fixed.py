@@ -260,3 +260,33 @@ def test_second_candidates_skip_the_first_s_namesake_and_refit_a_moved_unit():
     again = {"thruster_fault": score("thruster_fault", 40.0, (1,))}
     out = core._second_candidates(first, [unit1], by_effect, cands, cal, again, set(), None)
     assert [(c.keys, alone) for c, _, alone in out] == [(unit1.candidate.keys, False)]
+
+
+def test_a_family_the_second_pass_cannot_test_is_listed_untestable_with_the_first():
+    """With the first finding in the model, a family the first pass could test and the second
+    pass cannot (not significant, sd over half its reference) is listed untestable with the
+    first named: not absent (dev 5460, 5395, 5291, 5135). Named, rejected, already untestable or
+    still testable families are not; a thruster fault only when neither its units nor its
+    thrust curve can be tested."""
+    from ground.diagnose import core, decide
+
+    cands = candidates_for(HEAVY)
+    cal = decide.Calibration(8, 1.0, {}, {c.effect: 5.0 for c in cands}, 0.01, {})
+
+    def score(effect, stat, sd):  # reference 1: the family is determined when sd <= 0.5
+        return decide.Score(effect, 1, stat, 0.0, np.zeros(1), np.array([sd]), np.ones(1))
+
+    again = {"linear_damping": score("linear_damping", 1.0, 2.0),  # undetermined: listed
+             "added_mass": score("added_mass", 1.0, 0.2),  # determined: tested, absent
+             "current": score("current", 9.0, 2.0),  # significant: tested
+             "motor_lag": score("motor_lag", 1.0, 3.0),  # not testable on the first pass already
+             "buoyancy": score("buoyancy", 1.0, 3.0),  # rejected: keeps that verdict
+             "thruster_fault": score("thruster_fault", 1.0, 3.0),
+             "thrust_curve": score("thrust_curve", 1.0, 0.1)}  # the fault's curve still tested
+    out = core._masked_untestable(cands, {"motor_lag"}, again, "servo_lag", cal, {"buoyancy"})
+    assert [u["effect"] for u in out] == ["linear_damping"], out
+    assert out[0]["with"] == "servo_lag" and "with servo_lag in the model" in out[0]["reason"]
+    assert "Cramer-Rao sd 2x" in out[0]["reason"]
+    again["thrust_curve"] = score("thrust_curve", 1.0, 3.0)
+    out = core._masked_untestable(cands, {"motor_lag"}, again, "servo_lag", cal, {"buoyancy"})
+    assert sorted(u["effect"] for u in out) == ["linear_damping", "thruster_fault"]
