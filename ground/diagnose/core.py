@@ -93,16 +93,19 @@ def _say(progress, msg):
 
 
 def fit_windows(rec, max_fit_s: float, vehicle: Vehicle | None = None) -> list[tuple[float, float]]:
-    """[(t0, t1)] of the fitting windows: WINDOW_S each, at most max_fit_s in all, spread evenly
-    over the recording's segments (every regime stays represented; a gap never inside one).
-    With `vehicle`, windows where no thruster is ever commanded are left out while any other is
+    """[(t0, t1)] of the fitting windows: WINDOW_S to twice that, tiling each of the recording's
+    segments, at most max_fit_s // WINDOW_S of them, spread evenly (every regime stays
+    represented; a gap never inside one). Whole WINDOW_S windows from each segment's start had
+    left its last partial window out: a 90 s recording's surfacing at 77-84 s lay 2.7 s inside
+    the fitting windows, and three of four such surface effects went unnamed (dev 5655, 5706,
+    5785). With `vehicle`, windows where no thruster is ever commanded are left out while any other is
     (a real log idles for minutes around a short armed stretch: small.tlog's 15 s of 264 s)."""
     out = []
     imu = rec.imu.time_s
     win = max(WINDOW_S, 40.0 * float(np.median(np.diff(imu)))) if len(imu) > 1 else WINDOW_S  # slow IMUs
-    for a, b in rec.segment_bounds():
+    for a, b in rec.segment_bounds():  # tiling the segment: windows of win to 2 win, none of it left out
         n = int((b - a) // win)
-        out += [(a + i * win, a + (i + 1) * win) for i in range(n)]
+        out += [(a + i * (b - a) / n, a + (i + 1) * (b - a) / n) for i in range(n)]
     if not out:  # shorter than one window: the whole of it
         bounds = rec.segment_bounds() or [(rec.t_start_s, rec.t_end_s)]
         a, b = max(bounds, key=lambda s: s[1] - s[0])
@@ -237,7 +240,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         _say(progress, f"{f.candidate.effect} not named: {why}")
     chosen: list[Fit] = []
     final = None
-    again = None  # the second pass's scores (effect -> Score), when there is one
+    again, again_with = None, None  # the second pass's scores (effect -> Score) and the candidate in its model
     second_test: dict = {}  # id(the second finding's Fit) -> (that Fit, its Score, the first effect it was tested
     # with); holding the Fit keeps its id from being reused by a Fit made after a rejected pair
     if single:
@@ -253,6 +256,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         shared = []  # pairs refused by their share of the held-out drop alone (`_standout`)
         _say(progress, f"scoring the candidates again with {best.candidate.effect} in the model")
         again = _second_pass(recs_w, leads, runs, best.model, cands, best.candidate.effect, split_fit, cal)
+        again_with = best.candidate
         share = SECOND_MIN_GAIN if again is not None else SECOND_MIN_GAIN_NESTED
         for oc, start, alone in _second_candidates(best, single[1:], by_effect, cands, cal, again, skip, progress):
             sc = (again or by_effect)[oc.effect]  # its evidence: the second pass's score when there is one
@@ -432,8 +436,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     rejected = list(dict.fromkeys(e for e in (public.get(e, e) for e in rejected + worse) if e not in named))
     # a second finding was tested on the second pass: not also listed partly untestable from the first
     untestable = untestable + [u for u in partly if u["effect"] not in named]
-    if again is not None:  # judged with the first finding in the model: the whole family's entry in place of any other
-        masked = _masked_untestable(cands, skip, again, chosen[0].candidate.public, cal, named | set(rejected))
+    # judged with the first finding in the model (while it is still the report's first: not after
+    # a withdrawal): the whole family's entry in place of any other
+    if again is not None and chosen and chosen[0].candidate.effect == again_with.effect:
+        masked = _masked_untestable(cands, skip, again, again_with.public, cal, named | set(rejected))
         untestable = [u for u in untestable if u["effect"] not in {m["effect"] for m in masked}] + masked
     est = traj.estimate
     warnings = []
