@@ -133,6 +133,15 @@ def test_family_table_has_wilson_intervals_and_the_confusion_matrix():
     assert "4 cases (1 raised), 2 controls" in text
     assert "| all | 3 | 1/2 (50 %, 9-91) |" in text  # false findings on controls, Wilson 95 %
     assert "| control | (none) |" not in text and "| control |" in text and "| buoyancy |" in text
+    assert "with the first finding in the model" not in text
+    # an effect untestable only with the first finding in the model: also counted as a tested miss
+    rows.append({"case": "m", "index": 7, "expect": ["added_mass", "restoring_moment"], "named": ["restoring_moment"],
+                 "sensors": "imu", "pilot": "legs", "testable": False, "masked_by": "restoring_moment",
+                 "top1": False, "top2": False, "nrmse_before": 0.1, "nrmse_after": 0.05})
+    text = family_table(rows)
+    assert "| all | 4 | 1/2 (50 %, 9-91) | 1/2 (50 %, 9-91) | 1/1 (100 %, 21-100) |" in text
+    assert "1 effect(s) not testable only with the first finding in the model (7); counted as tested misses " \
+           "instead: top-1 1/2 (50 %, 9-91), top-2 1/2 (50 %, 9-91)" in text
 
 
 # A small stratified subset of the benchmark's development split, run in CI, chosen by a rule, not
