@@ -277,6 +277,8 @@ def test_a_family_the_second_pass_cannot_test_is_listed_untestable_with_the_firs
     def score(effect, stat, sd):  # reference 1: the family is determined when sd <= 0.5
         return decide.Score(effect, 1, stat, 0.0, np.zeros(1), np.array([sd]), np.ones(1))
 
+    first = next(c for c in cands if c.effect == "servo_lag")
+    named = [{"effect": "imu_bias"}, {"effect": "servo_lag"}]  # a bias listed first: "with" the force
     again = {"linear_damping": score("linear_damping", 1.0, 2.0),  # undetermined: listed
              "added_mass": score("added_mass", 1.0, 0.2),  # determined: tested, absent
              "current": score("current", 9.0, 2.0),  # significant: tested
@@ -284,13 +286,18 @@ def test_a_family_the_second_pass_cannot_test_is_listed_untestable_with_the_firs
              "buoyancy": score("buoyancy", 1.0, 3.0),  # rejected: keeps that verdict
              "thruster_fault": score("thruster_fault", 1.0, 3.0),
              "thrust_curve": score("thrust_curve", 1.0, 0.1)}  # the fault's curve still tested
-    out = core._masked_untestable(cands, {"motor_lag"}, again, "servo_lag", cal, {"buoyancy"})
+    out = core._masked_untestable(cands, {"motor_lag"}, again, first, named, cal, {"buoyancy"})
     assert [u["effect"] for u in out] == ["linear_damping"], out
     assert out[0]["with"] == "servo_lag" and "with servo_lag in the model" in out[0]["reason"]
     assert "Cramer-Rao sd 2x" in out[0]["reason"]
     again["thrust_curve"] = score("thrust_curve", 1.0, 3.0)
-    out = core._masked_untestable(cands, {"motor_lag"}, again, "servo_lag", cal, {"buoyancy"})
+    out = core._masked_untestable(cands, {"motor_lag"}, again, first, named, cal, {"buoyancy"})
     assert sorted(u["effect"] for u in out) == ["linear_damping", "thruster_fault"]
+    # nothing to be tested with: the first withdrawn (another finding, or none), or no second pass
+    for findings in ([], [{"effect": "buoyancy"}]):
+        assert core._masked_untestable(cands, set(), again, first, findings, cal, set()) == []
+    assert core._masked_untestable(cands, set(), None, first, named, cal, set()) == []
+    assert core._masked_untestable(cands, set(), again, None, named, cal, set()) == []
 
 
 def test_fitting_windows_tile_the_whole_recording():

@@ -25,7 +25,7 @@ from .candidates import (CHANNEL_AXIS, CHANNELS, Candidate, CorrectedModel, Eval
 # Decision: calibrated thresholds per recording (decide.py); these shape the report.
 UNKNOWN_IF_EXPLAINED_BELOW = 0.5
 SHOOT_S = 2.0  # multiple-shooting window length for the held-out NRMSE
-WINDOW_S = 10.0  # candidates are scored on windows this long (the null draws re-fly each from its start)
+WINDOW_S = 10.0  # candidates are scored on windows this long to under twice that (fit_windows; the null draws re-fly each)
 RANK_TOP = 6  # significant candidates fitted nonlinearly to rank them
 RANK_TANGENT_FAILED = 2  # ... and the significant ones whose linear step did not carry to held-out data
 SECOND_MIN_GAIN = 0.10  # a second effect must add this share of the first one's held-out drop
@@ -93,9 +93,10 @@ def _say(progress, msg):
 
 
 def fit_windows(rec, max_fit_s: float, vehicle: Vehicle | None = None) -> list[tuple[float, float]]:
-    """[(t0, t1)] of the fitting windows: WINDOW_S to twice that, tiling each of the recording's
-    segments, at most max_fit_s // WINDOW_S of them, spread evenly (every regime stays
-    represented; a gap never inside one). Whole WINDOW_S windows from each segment's start had
+    """[(t0, t1)] of the fitting windows: `win` (WINDOW_S, or 40 IMU samples when the IMU is
+    slower) to under twice that, tiling each of the recording's segments, at most
+    max_fit_s // win of them, spread evenly (every regime stays represented; a gap never inside
+    one). Whole WINDOW_S windows from each segment's start had
     left its last partial window out: a 90 s recording's surfacing at 77-84 s lay 2.7 s inside
     the fitting windows, and three of four such surface effects went unnamed (dev 5655, 5706,
     5785). With `vehicle`, windows where no thruster is ever commanded are left out while any other is
@@ -436,11 +437,6 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     rejected = list(dict.fromkeys(e for e in (public.get(e, e) for e in rejected + worse) if e not in named))
     # a second finding was tested on the second pass: not also listed partly untestable from the first
     untestable = untestable + [u for u in partly if u["effect"] not in named]
-    # judged with the first finding in the model (while it is still the report's first: not after
-    # a withdrawal): the whole family's entry in place of any other
-    if again is not None and chosen and chosen[0].candidate.effect == again_with.effect:
-        masked = _masked_untestable(cands, skip, again, again_with.public, cal, named | set(rejected))
-        untestable = [u for u in untestable if u["effect"] not in {m["effect"] for m in masked}] + masked
     est = traj.estimate
     warnings = []
     if vehicle.fixed:  # what the motor directions read from the log cannot say
@@ -469,6 +465,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                         f"{est.divergences} time(s); the vehicle file does not describe this vehicle, so no "
                         "finding is named")
         findings = []
+    # judged again with the first force finding in the model, while the report still makes it
+    masked = _masked_untestable(cands, skip, again, again_with, findings, cal, named | set(rejected) | {
+        f.candidate.public for f, _ in small})
+    untestable = untestable + masked
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
         "recording": rec.summary(),
@@ -525,7 +525,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             {"effect": public.get(s.effect, s.effect), "kind": kinds.get(s.effect, "missing"),
              "statistic": round(s.statistic, 2), "threshold": round(cal.threshold[s.effect], 2),
              "heldout_chi2_drop": None if not math.isfinite(s.holdout_drop) else round(s.holdout_drop, 1),
-             "confidence": round(decide.confidence(s, cal, n_fam), 4), "testable": s.effect not in skip}
+             "confidence": round(decide.confidence(s, cal, n_fam), 4),
+             "testable": s.effect not in skip and public.get(s.effect) not in {m["effect"] for m in masked}}
             for s in sorted(scores, key=lambda s: -s.statistic / cal.threshold[s.effect])
         ],
         "elapsed_s": round(time.perf_counter() - t_start, 2),
@@ -938,20 +939,26 @@ def _partly_untestable(cand, s, cal) -> dict | None:
             "reason": f"{', '.join(names)} (the family's other parameters are tested): {crb}"}
 
 
-def _masked_untestable(cands, skip: set, again: dict, first: str, cal, reported: set) -> list:
-    """The untestable entries of the candidates the first pass could test (not in `skip`) that
-    the second pass (`again`, with the `first` finding in the model) cannot: not significant
-    there and no parameter determined to half its reference (decide.testable's rule, as on the
-    first pass). The first pass judged them with the first effect unmodelled; the model the
-    report stands on has it, and not testable with it is not absent (issue 18 item 4). Of the
-    seven dev cases of 5032-5631 whose concealed effect was lost behind the mask named alone,
-    four were undetermined so (5460 linear damping, Cramer-Rao sd 1.2-5.7x its reference; 5395
-    quadratic damping; 5291 added mass; 5135 motor lag) and three were tested and missed (5611,
-    5115, 5145). A family named or rejected (its fit worse held out) keeps that verdict; a family
-    of several candidates (a thruster fault's units and thrust curve) only when none is testable."""
+def _masked_untestable(cands, skip: set, again: dict | None, first, findings: list, cal, reported: set) -> list:
+    """The untestable entries, `"with"` the `first` force finding (a Candidate), of the families
+    the first pass could test (not in `skip`) that the second pass (`again`, with `first` in the
+    model) cannot: not significant there and no parameter determined to half its reference
+    (decide.testable's rule, as on the first pass). None unless the report's `findings` still
+    name `first` (a finding withdrawn for its held-out fit, or every finding dropped for too few
+    null draws, leaves nothing to be tested with). The first pass judged these families with the
+    first effect unmodelled; not testable with it is not absent (issue 18 item 4). Of the seven
+    dev cases of 5032-5631 whose concealed effect was lost behind the mask named alone, four were
+    undetermined so (5460 linear damping, Cramer-Rao sd 1.2-5.7x its reference; 5395 quadratic
+    damping; 5291 added mass; 5135 motor lag) and three were tested and missed (5611, 5115,
+    5145). A family `reported` (named, rejected, negligible) keeps that verdict; a family of
+    several candidates (a thruster fault's units and its thrust curve) is listed only when none
+    is testable. Other entries of the family (the first pass's partly testable parameters, the
+    horizontal current's physics) stay: they say something else."""
+    if again is None or first is None or first.public not in {f["effect"] for f in findings}:
+        return []
     by_public: dict = {}
     for c in cands:
-        if c.effect in again and c.effect not in skip and c.public not in reported | {first}:
+        if c.effect in again and c.effect not in skip and c.public not in reported:
             by_public.setdefault(c.public, []).append(c)
     out = []
     for public, cs in by_public.items():
@@ -962,8 +969,8 @@ def _masked_untestable(cands, skip: set, again: dict, first: str, cal, reported:
         rel = float(np.min(sd / np.maximum(q.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
         crb = (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding" if math.isfinite(rel)
                else "the recording carries no information on it")
-        out.append({"effect": public, "kind": cs[0].kind, "with": first,
-                    "reason": f"not testable with {first} in the model: {crb}"})
+        out.append({"effect": public, "kind": cs[0].kind, "with": first.public,
+                    "reason": f"not testable with {first.public} in the model: {crb}"})
     return out
 
 
