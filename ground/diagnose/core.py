@@ -96,11 +96,11 @@ def fit_windows(rec, max_fit_s: float, vehicle: Vehicle | None = None) -> list[t
     """[(t0, t1)] of the fitting windows: `win` (WINDOW_S, or 40 IMU samples when the IMU is
     slower) to under twice that, tiling each of the recording's segments, at most
     max_fit_s // win of them, spread evenly (every regime stays represented; a gap never inside
-    one). Whole WINDOW_S windows from each segment's start had
-    left its last partial window out: a 90 s recording's surfacing at 77-84 s lay 2.7 s inside
-    the fitting windows, and three of four such surface effects went unnamed (dev 5655, 5706,
-    5785). With `vehicle`, windows where no thruster is ever commanded are left out while any other is
-    (a real log idles for minutes around a short armed stretch: small.tlog's 15 s of 264 s)."""
+    one). Whole WINDOW_S windows from each segment's start had left its last partial window
+    out: a 90 s recording's surfacing at 77-84 s lay 2.7 s inside the fitting windows, and three
+    of four such surface effects went unnamed (dev 5655, 5706, 5785). With `vehicle`, windows
+    where no thruster is ever commanded are left out while any other is (a real log idles for
+    minutes around a short armed stretch: small.tlog's 15 s of 264 s)."""
     out = []
     imu = rec.imu.time_s
     win = max(WINDOW_S, 40.0 * float(np.median(np.diff(imu)))) if len(imu) > 1 else WINDOW_S  # slow IMUs
