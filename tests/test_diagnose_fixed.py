@@ -214,7 +214,9 @@ def test_scoring_windows_sit_where_the_thrusters_ran(with_vehicle, expect):
     w = fit_windows(rec, 120.0, HEAVY if with_vehicle else None)
     assert len(w) == expect
     if with_vehicle:
-        # its thrust commands (903.7-910.7 s) inside, in one window of the 2 Hz IMU's 20 s tiling
+        # its thrust commands (903.7-910.7 s) inside one window: at 2 Hz a window is 40 samples = 20 s,
+        # the segment 689.2-952.9 s tiles into 13 windows of 20.28 s, and the 11th (892.0-912.3 s)
+        # holds all of them, the only one with thrust
         assert w[0][0] <= 903.7 and 910.7 <= w[-1][1] and all(900.7 - 21 <= a and b <= 915.7 + 21 for a, b in w)
 
 

@@ -106,7 +106,8 @@ def fit_windows(rec, max_fit_s: float, vehicle: Vehicle | None = None) -> list[t
     win = max(WINDOW_S, 40.0 * float(np.median(np.diff(imu)))) if len(imu) > 1 else WINDOW_S  # slow IMUs
     for a, b in rec.segment_bounds():  # tiling the segment: windows of win to 2 win, none of it left out
         n = int((b - a) // win)
-        out += [(a + i * (b - a) / n, a + (i + 1) * (b - a) / n) for i in range(n)]
+        step = (b - a) / n if n else 0.0
+        out += [(a + i * step, a + (i + 1) * step) for i in range(n)]
     if not out:  # shorter than one window: the whole of it
         bounds = rec.segment_bounds() or [(rec.t_start_s, rec.t_end_s)]
         a, b = max(bounds, key=lambda s: s[1] - s[0])
