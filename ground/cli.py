@@ -64,6 +64,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `jetloop prove --table ... | head`: the reader left; no traceback
+        # (the Python documentation's recipe, "Note on SIGPIPE": stdout to devnull so the
+        # interpreter's own flush at exit does not raise again)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # as a shell reports a process ended by SIGPIPE (128 + 13)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -832,6 +832,37 @@ def run_family(split: str, n: int, out: Path, workers: int = 2, first: int = 0, 
     return rows
 
 
+def pooled_rows(paths) -> list[dict]:
+    """The cases of several family.json files as one benchmark (blocks run apart: on two machines,
+    or a second fresh block at the same code). One split only, each case once."""
+    from onboard.files import read_text_bounded
+
+    rows, seen, splits = [], {}, set()
+    for path in map(Path, paths):
+        try:
+            data = json.loads(read_text_bounded(path, MAX_FAMILY_JSON_BYTES))
+            cases = data["cases"]
+            keys = [(r["split"], int(r["index"])) for r in cases]
+            if not all(isinstance(r.get("expect"), list) for r in cases):
+                raise TypeError("a case without its expected effects")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ProveError(f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from exc
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise ProveError(f"{path} is not a benchmark family.json ({exc})") from exc
+        for key, r in zip(keys, cases):
+            if key in seen:
+                raise ProveError(f"{key[0]} case {key[1]} is in both {seen[key]} and {path}: pool each case once")
+            seen[key] = path
+            splits.add(key[0])
+            rows.append(r)
+    if len(splits) > 1:
+        raise ProveError(f"cannot pool cases of different splits ({', '.join(sorted(splits))}): "
+                         "development cases were looked at while tuning")
+    if not rows:
+        raise ProveError("no cases in " + ", ".join(map(str, paths)))
+    return sorted(rows, key=lambda r: int(r["index"]))
+
+
 def configure(parser) -> None:
     parser.add_argument("--out", default="prove_out", help="directory for recordings, reports and prove.json")
     parser.add_argument("--vehicle", default=None, help="reference vehicle TOML (default asr4)")
@@ -847,11 +878,22 @@ def configure(parser) -> None:
                              "processes; results.parquet and index.html beside family.json)")
     parser.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                         help="benchmark: run the cases on this existing Dask scheduler (implies --dask)")
+    parser.add_argument("--table", nargs="+", default=None, metavar="FAMILY_JSON",
+                        help="benchmark: print the table of these family.json files pooled (blocks run apart, "
+                             "e.g. two fresh blocks at the same commit); runs nothing")
     parser.add_argument("--quiet", action="store_true")
 
 
 def run(args) -> int:
     from onboard.vehicle import VehicleFileError, require_jets
+
+    if args.table:
+        try:
+            print(family_table(pooled_rows(args.table)))
+        except ProveError as exc:
+            print(f"jetloop prove: {exc}", file=sys.stderr)
+            return 2
+        return 0
 
     try:
         reference = load_vehicle(args.vehicle)

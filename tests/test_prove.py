@@ -190,6 +190,60 @@ def test_a_family_json_that_is_not_a_file_is_one_line(tmp_path, capsys):
     assert err == f"jetloop prove: cannot resume from {tmp_path / 'family.json'}: not a regular file (a device, pipe or directory)"
 
 
+def _family_json(path, split, indices, named):
+    rows = [{"case": f"{split}-{i}", "split": split, "index": i, "expect": ["buoyancy"], "named": named,
+             "sensors": "mocap", "pilot": "legs", "testable": True, "top1": named == ["buoyancy"],
+             "top2": "buoyancy" in named} for i in indices]
+    path.write_text(json.dumps({"split": split, "cases": rows}))
+    return str(path)
+
+
+def test_prove_table_pools_family_jsons_once_each_and_one_split(tmp_path, capsys):
+    """`jetloop prove --table A B`: two blocks as one benchmark (two fresh blocks at the same
+    commit, or a block split over machines): 2 hits of 3 and 1 of 1 are 3 of 4, Wilson 30-95 %."""
+    a = _family_json(tmp_path / "a.json", "eval", [10, 11, 12], ["buoyancy"])
+    b = _family_json(tmp_path / "b.json", "eval", [13], ["buoyancy"])
+    miss = json.loads((tmp_path / "a.json").read_text())
+    miss["cases"][0].update(named=[], top1=False, top2=False)
+    (tmp_path / "a.json").write_text(json.dumps(miss))
+    assert main(["prove", "--table", a, b]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("4 cases (0 raised), 0 controls")
+    assert "| all | 4 | - | 4/4 (100 %, 51-100) | 3/4 (75 %, 30-95) | 3/4 (75 %, 30-95) |" in out
+    # each case once, one split, and a file that is not a family.json: one line each, exit 2
+    dev = _family_json(tmp_path / "dev.json", "dev", [14], ["buoyancy"])
+    (tmp_path / "junk.json").write_text("{\"cases\": [{\"split\": \"eval\"}]}")
+    for args, err in ((["--table", a, a], f"jetloop prove: eval case 10 is in both {a} and {a}: pool each case once"),
+                      (["--table", a, dev], "jetloop prove: cannot pool cases of different splits (dev, eval): "
+                                            "development cases were looked at while tuning"),
+                      (["--table", str(tmp_path / "junk.json")],
+                       f"jetloop prove: {tmp_path / 'junk.json'} is not a benchmark family.json ('index')"),
+                      (["--table", str(tmp_path / "none.json")],
+                       f"jetloop prove: cannot read {tmp_path / 'none.json'}: No such file or directory")):
+        assert main(["prove", *args]) == 2
+        assert capsys.readouterr().err.strip() == err
+
+
+def test_a_reader_that_leaves_early_ends_the_command_quietly(tmp_path):
+    """`jetloop prove --table ... | head`: the reader closes the pipe before the table is written;
+    the command ends with the shell's SIGPIPE status (141) and nothing on stderr, not a
+    BrokenPipeError traceback (the real entry point, the real pipe)."""
+    import shutil
+    import subprocess
+
+    # 400 effects: a confusion table of 400 x 400 cells, far beyond the pipe's 64 kB buffer
+    rows = [{"case": f"eval-{i}", "split": "eval", "index": i, "expect": [f"effect_{i}"], "named": [f"effect_{i}"],
+             "sensors": "imu", "pilot": "legs", "testable": True, "top1": True, "top2": True} for i in range(400)]
+    path = tmp_path / "family.json"
+    path.write_text(json.dumps({"split": "eval", "cases": rows}))
+    proc = subprocess.Popen([shutil.which("jetloop"), "prove", "--table", str(path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout.read(20).startswith(b"400 cases")
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 141 and err == b"", err
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("index, first", [(1854, ["added_mass", "imu_bias"]), (1441, ["imu_bias", "buoyancy"])])
 def test_an_imu_bias_named_with_a_force_is_listed_by_what_it_explains(index, first, tmp_path):
