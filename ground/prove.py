@@ -767,7 +767,7 @@ def family_table(rows: list[dict]) -> str:
     masked = [r for r in ok if r["expect"] and r.get("testable") and r.get("masked_by")]
     if masked:  # counted as tested (and missed) above; the rate without them, for what the report says
         test = [r for r in ok if r["expect"] and r.get("testable") and not r.get("masked_by")]
-        lines += ["", f"{len(masked)} tested effect(s) the report lists untestable with its first finding in the "
+        lines += ["", f"{len(masked)} tested effect(s) the report lists untestable with its first force finding in the "
                       f"model ({', '.join(str(r.get('index', r['case'])) for r in masked)}), counted as misses above; "
                       f"without them: top-1 {rate(test, 'top1')}, top-2 {rate(test, 'top2')}"]
     lines += ["", "| effect | cases | testable | top-1 (testable) | top-2 (testable) | param within 15 % |", "|---|---|---|---|---|---|"]

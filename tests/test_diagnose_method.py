@@ -1647,6 +1647,11 @@ def test_a_masked_effect_undetermined_on_the_second_pass_is_listed_untestable(tm
     named = [f["effect"] for f in rep["findings"]]
     withs = {u["effect"]: u.get("with") for u in rep["untestable"] if u.get("with")}
     assert set(withs.values()) <= set(named), (named, withs)
+    for u in rep["untestable"]:  # the candidates rows are the first pass's: significant there is testable
+        rows = [c for c in rep["candidates"] if c["effect"] == u["effect"]]
+        if u.get("with"):
+            assert all(c["testable"] == (c["statistic"] > c["threshold"]) for c in rows), (u, rows)
+            assert u["reason"].startswith("significant alone") == any(c["testable"] for c in rows), (u, rows)
     if first is not None:
         assert named[:1] == [first], named
         assert withs.get(masked) == first and row["masked_by"] == first and row["testable"], (withs, row)

@@ -130,7 +130,7 @@ def test_family_table_has_wilson_intervals_and_the_confusion_matrix():
     assert "4 cases (1 raised), 2 controls" in text
     assert "| all | 3 | 1/2 (50 %, 9-91) |" in text  # false findings on controls, Wilson 95 %
     assert "| control | (none) |" not in text and "| control |" in text and "| buoyancy |" in text
-    assert "with the first finding in the model" not in text
+    assert "first force finding in the model" not in text
     # an effect the report lists untestable with its first finding in the model: a tested miss
     # (prove._testable keeps the first pass's verdict), and the rate without it printed apart
     rows.append({"case": "m", "index": 7, "expect": ["added_mass", "restoring_moment"], "named": ["restoring_moment"],
@@ -138,7 +138,7 @@ def test_family_table_has_wilson_intervals_and_the_confusion_matrix():
                  "top1": False, "top2": False, "nrmse_before": 0.1, "nrmse_after": 0.05})
     text = family_table(rows)
     assert "| all | 4 | 1/2 (50 %, 9-91) | 2/2 (100 %, 34-100) | 1/2 (50 %, 9-91) |" in text
-    assert "1 tested effect(s) the report lists untestable with its first finding in the model (7), counted as " \
+    assert "1 tested effect(s) the report lists untestable with its first force finding in the model (7), counted as " \
            "misses above; without them: top-1 1/1 (100 %, 21-100), top-2 1/1 (100 %, 21-100)" in text
 
 

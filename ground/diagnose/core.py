@@ -468,7 +468,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         findings = []
     # judged again with the first force finding in the model, while the report still makes it
     masked = _masked_untestable(cands, skip, again, again_with, findings, cal, named | set(rejected) | {
-        f.candidate.public for f, _ in small})
+        f.candidate.public for f, _ in small}, {s.effect: s for s in above})
     untestable = untestable + masked
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
@@ -527,7 +527,10 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
              "statistic": round(s.statistic, 2), "threshold": round(cal.threshold[s.effect], 2),
              "heldout_chi2_drop": None if not math.isfinite(s.holdout_drop) else round(s.holdout_drop, 1),
              "confidence": round(decide.confidence(s, cal, n_fam), 4),
-             "testable": s.effect not in skip and public.get(s.effect) not in {m["effect"] for m in masked}}
+             # this first pass's verdict: a family it found significant stays testable here, and
+             # its "with" entry says it is confounded with the first finding (_masked_untestable)
+             "testable": s.effect not in skip and not (s.effect not in {a.effect for a in above}
+                                                       and public.get(s.effect) in {m["effect"] for m in masked})}
             for s in sorted(scores, key=lambda s: -s.statistic / cal.threshold[s.effect])
         ],
         "elapsed_s": round(time.perf_counter() - t_start, 2),
@@ -934,13 +937,15 @@ def _partly_untestable(cand, s, cal) -> dict | None:
         return None
     worst = [float(rel[j]) for j in loose if np.isfinite(rel[j])]
     span = f"{min(worst):.2g}" + (f"-{max(worst):.2g}" if max(worst) > min(worst) else "") if worst else ""
-    crb = f"Cramer-Rao sd {span}x the smallest error worth finding" if worst else "the recording carries no information on them"
+    crb = (f"Cramer-Rao sd {span}x the smallest error worth finding (a test needs at most "
+           f"{decide.HALF_WORTH_FINDING:g}x)" if worst else "the recording carries no information on them")
     names = [cand.parameter_name(j) for j in loose]
     return {"effect": cand.public, "kind": cand.kind, "parameters": names,
             "reason": f"{', '.join(names)} (the family's other parameters are tested): {crb}"}
 
 
-def _masked_untestable(cands, skip: set, again: dict | None, first, findings: list, cal, reported: set) -> list:
+def _masked_untestable(cands, skip: set, again: dict | None, first, findings: list, cal, reported: set,
+                       above: dict = {}) -> list:
     """The untestable entries, `"with"` the `first` force finding (a Candidate), of the families
     the first pass could test (not in `skip`) that the second pass (`again`, with `first` in the
     model) cannot: not significant there and no parameter determined to half its reference
@@ -949,12 +954,17 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
     null draws, leaves nothing to be tested with). The first pass judged these families with the
     first effect unmodelled; not testable with it is not absent (issue 18 item 4). Of the seven
     dev cases of 5032-5631 whose concealed effect was lost behind the mask named alone, four were
-    undetermined so (5460 linear damping, Cramer-Rao sd 1.2-5.7x its reference; 5395 quadratic
-    damping; 5291 added mass; 5135 motor lag) and three were tested and missed (5611, 5115,
+    undetermined so when this was written (5460 linear damping, Cramer-Rao sd 1.2-5.7x its
+    reference, negligible instead since the tiled windows; 5395 quadratic damping; 5291 added
+    mass; 5135 motor lag) and three were tested and missed (5611, 5115,
     5145). A family `reported` (named, rejected, negligible) keeps that verdict; a family of
     several candidates (a thruster fault's units and its thrust curve) is listed only when none
     is testable. Other entries of the family (the first pass's partly testable parameters, the
-    horizontal current's physics) stay: they say something else."""
+    horizontal current's physics) stay: they say something else. A family `above` its threshold
+    on the first pass (its Score by effect id) was significant alone: its entry says so, it is
+    confounded with `first` on this recording, and its candidates row stays testable (a hostile
+    review's find: 6068's true added mass, S 319.5 against 187.6, read only "not testable with
+    sensor_delay", beside a candidates row of confidence 1.0 marked not testable)."""
     if again is None or first is None or first.public not in {f["effect"] for f in findings}:
         return []
     by_public: dict = {}
@@ -965,8 +975,14 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
     for public, cs in by_public.items():
         if any(decide.testable(again[c.effect], cal) for c in cs):
             continue
-        out.append({"effect": public, "kind": cs[0].kind, "with": first.public,
-                    "reason": f"not testable with {first.public} in the model: {_crb(again[cs[0].effect], cal)}"})
+        crb = _crb(again[cs[0].effect], cal)
+        alone = [above[c.effect] for c in cs if c.effect in above]
+        reason = f"not testable with {first.public} in the model: {crb}"
+        if alone:
+            a = max(alone, key=lambda q: q.statistic / cal.threshold[q.effect])
+            reason = (f"significant alone (S {a.statistic:.1f} against {cal.threshold[a.effect]:.1f}) but not "
+                      f"determined with {first.public} in the model: {crb}; the two are confounded here")
+        out.append({"effect": public, "kind": cs[0].kind, "with": first.public, "reason": reason})
     return out
 
 
@@ -975,8 +991,8 @@ def _crb(s, cal) -> str:
     parameter's calibrated sd against the smallest error worth finding."""
     sd = decide.best_sd(s, cal)
     rel = float(np.min(sd / np.maximum(s.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
-    return (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding" if math.isfinite(rel)
-            else "the recording carries no information on it")
+    return (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding (a test needs at most "
+            f"{decide.HALF_WORTH_FINDING:g}x)" if math.isfinite(rel) else "the recording carries no information on it")
 
 
 def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
