@@ -470,6 +470,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     masked = _masked_untestable(cands, skip, again, again_with, findings, cal, named | set(rejected) | {
         f.candidate.public for f, _ in small}, {s.effect: s for s in above})
     untestable = untestable + masked
+    above_ids, masked_ids = {s.effect for s in above}, {m["effect"] for m in masked}
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
         "recording": rec.summary(),
@@ -529,8 +530,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
              "confidence": round(decide.confidence(s, cal, n_fam), 4),
              # this first pass's verdict: a family it found significant stays testable here, and
              # its "with" entry says it is confounded with the first finding (_masked_untestable)
-             "testable": s.effect not in skip and not (s.effect not in {a.effect for a in above}
-                                                       and public.get(s.effect) in {m["effect"] for m in masked})}
+             "testable": s.effect not in skip and (s.effect in above_ids or public.get(s.effect) not in masked_ids)}
             for s in sorted(scores, key=lambda s: -s.statistic / cal.threshold[s.effect])
         ],
         "elapsed_s": round(time.perf_counter() - t_start, 2),
@@ -945,7 +945,7 @@ def _partly_untestable(cand, s, cal) -> dict | None:
 
 
 def _masked_untestable(cands, skip: set, again: dict | None, first, findings: list, cal, reported: set,
-                       above: dict = {}) -> list:
+                       above: dict | None = None) -> list:
     """The untestable entries, `"with"` the `first` force finding (a Candidate), of the families
     the first pass could test (not in `skip`) that the second pass (`again`, with `first` in the
     model) cannot: not significant there and no parameter determined to half its reference
@@ -976,7 +976,7 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
         if any(decide.testable(again[c.effect], cal) for c in cs):
             continue
         crb = _crb(again[cs[0].effect], cal)
-        alone = [above[c.effect] for c in cs if c.effect in above]
+        alone = [above[c.effect] for c in cs if c.effect in (above or {})]
         reason = f"not testable with {first.public} in the model: {crb}"
         if alone:
             a = max(alone, key=lambda q: q.statistic / cal.threshold[q.effect])
