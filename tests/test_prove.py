@@ -131,6 +131,7 @@ def test_family_table_has_wilson_intervals_and_the_confusion_matrix():
     assert "| all | 3 | 1/2 (50 %, 9-91) |" in text  # false findings on controls, Wilson 95 %
     assert "| control | (none) |" not in text and "| control |" in text and "| buoyancy |" in text
     assert "first force finding in the model" not in text
+    assert "effects the recording cannot test" not in text
     # an effect the report lists untestable with its first finding in the model: a tested miss
     # (prove._testable keeps the first pass's verdict), and the rate without it printed apart
     rows.append({"case": "m", "index": 7, "expect": ["added_mass", "restoring_moment"], "named": ["restoring_moment"],
@@ -140,6 +141,14 @@ def test_family_table_has_wilson_intervals_and_the_confusion_matrix():
     assert "| all | 4 | 1/2 (50 %, 9-91) | 2/2 (100 %, 34-100) | 1/2 (50 %, 9-91) |" in text
     assert "1 tested effect(s) the report lists untestable with its first force finding in the model (7), counted as " \
            "misses above; without them: top-1 1/1 (100 %, 21-100), top-2 1/1 (100 %, 21-100)" in text
+    # an effect the recording cannot test, and a finding named that is not there: the controls'
+    # rate does not see it, this line does (the concealed masking second named is no such finding)
+    rows += [{"case": "u", "index": 8, "expect": ["current"], "named": ["sensor_delay"], "sensors": "ardusub",
+              "pilot": "legs", "testable": False},
+             {"case": "v", "index": 9, "expect": ["wall_proximity", "motor_lag"], "named": ["motor_lag"],
+              "sensors": "imu", "pilot": "legs", "testable": False}]
+    assert "effects the recording cannot test: 1/2 (50 %, 9-91) named an effect that is not there (8)" in \
+        family_table(rows)
 
 
 # A small stratified subset of the benchmark's development split, run in CI, chosen by a rule, not
