@@ -850,12 +850,16 @@ def pooled_rows(paths) -> list[dict]:
             data = json.loads(read_text_bounded(path, MAX_FAMILY_JSON_BYTES))
             cases = data["cases"]
             keys = [(r["split"], int(r["index"])) for r in cases]
-            if not all(isinstance(r.get("expect"), list) for r in cases):
-                raise TypeError("a case without its expected effects")
+            for r in cases:
+                if not isinstance(r["split"], str) or not all(
+                        isinstance(r.get(k, []), list) and all(isinstance(e, str) for e in r.get(k, []))
+                        for k in ("expect", "named")):
+                    raise TypeError(f"case {r['index']}: split, expected and named effects are not names")
+            family_table(cases)  # every other field the table reads, read once here
         except (OSError, UnicodeDecodeError) as exc:
             raise ProveError(f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from exc
-        except (ValueError, KeyError, TypeError, AttributeError) as exc:
-            raise ProveError(f"{path} is not a benchmark family.json ({exc})") from exc
+        except (ValueError, KeyError, TypeError, AttributeError, OverflowError, RecursionError) as exc:
+            raise ProveError(f"{path} is not a benchmark family.json ({type(exc).__name__}: {exc})") from exc
         for key, r in zip(keys, cases):
             if key in seen:
                 raise ProveError(f"{key[0]} case {key[1]} is in both {seen[key]} and {path}: pool each case once")

@@ -226,17 +226,33 @@ def test_prove_table_pools_family_jsons_once_each_and_one_split(tmp_path, capsys
                       (["--table", a, dev], "jetloop prove: cannot pool cases of different splits (dev, eval): "
                                             "development cases were looked at while tuning"),
                       (["--table", str(tmp_path / "junk.json")],
-                       f"jetloop prove: {tmp_path / 'junk.json'} is not a benchmark family.json ('index')"),
+                       f"jetloop prove: {tmp_path / 'junk.json'} is not a benchmark family.json (KeyError: 'index')"),
                       (["--table", str(tmp_path / "none.json")],
                        f"jetloop prove: cannot read {tmp_path / 'none.json'}: No such file or directory")):
         assert main(["prove", *args]) == 2
         assert capsys.readouterr().err.strip() == err
+    # hostile rows (a review's finds: each had ended in a traceback): one line each, exit 2
+    good = {"case": "eval-1", "split": "eval", "index": 1, "expect": ["buoyancy"], "named": [], "sensors": "imu",
+            "pilot": "legs", "testable": True, "top1": False, "top2": False}
+    for i, bad in enumerate([dict(good, index=1e999), dict(good, split=[]), dict(good, expect=[[1]]),
+                             dict(good, named=5), dict(good, named="abc"), dict(good, param_error="x", top2=True),
+                             dict(good, nrmse_drop="a"), {k: v for k, v in good.items() if k != "sensors"}]):
+        path = tmp_path / f"bad{i}.json"
+        path.write_text(json.dumps({"split": "eval", "cases": [bad]}).replace("1e+999", "1e999"))
+        assert main(["prove", "--table", str(path)]) == 2, bad
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"jetloop prove: {path} is not a benchmark family.json (") and "\n" not in err, err
+    deep = tmp_path / "deep.json"
+    deep.write_text('{"cases": ' + "[" * 200000)
+    assert main(["prove", "--table", str(deep)]) == 2
+    assert capsys.readouterr().err.strip().startswith(f"jetloop prove: {deep} is not a benchmark family.json (")
 
 
 def test_a_reader_that_leaves_early_ends_the_command_quietly(tmp_path):
     """`jetloop prove --table ... | head`: the reader closes the pipe before the table is written;
     the command ends with the shell's SIGPIPE status (141) and nothing on stderr, not a
     BrokenPipeError traceback (the real entry point, the real pipe)."""
+    import os
     import shutil
     import subprocess
 
@@ -249,6 +265,16 @@ def test_a_reader_that_leaves_early_ends_the_command_quietly(tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     assert proc.stdout.read(20).startswith(b"400 cases")
     proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 141 and err == b"", err
+    # a table that fits the buffer, stdout buffered as usual, the reader gone before it is written
+    # (`| true`): the final flush fails inside the command, not at the interpreter's exit, where
+    # it had returned 0 with the output lost (a review's find; this machine sets PYTHONUNBUFFERED)
+    small = _family_json(tmp_path / "small.json", "eval", [1], ["buoyancy"])
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    proc = subprocess.Popen([shutil.which("jetloop"), "prove", "--table", small], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env)
+    proc.stdout.close()  # long before the command has imported what it needs
     err = proc.stderr.read()
     assert proc.wait(timeout=120) == 141 and err == b"", err
 

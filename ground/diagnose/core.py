@@ -937,8 +937,7 @@ def _partly_untestable(cand, s, cal) -> dict | None:
         return None
     worst = [float(rel[j]) for j in loose if np.isfinite(rel[j])]
     span = f"{min(worst):.2g}" + (f"-{max(worst):.2g}" if max(worst) > min(worst) else "") if worst else ""
-    crb = (f"Cramer-Rao sd {span}x the smallest error worth finding (a test needs at most "
-           f"{decide.HALF_WORTH_FINDING:g}x)" if worst else "the recording carries no information on them")
+    crb = _crb_words(span) if worst else "the recording carries no information on them"
     names = [cand.parameter_name(j) for j in loose]
     return {"effect": cand.public, "kind": cand.kind, "parameters": names,
             "reason": f"{', '.join(names)} (the family's other parameters are tested): {crb}"}
@@ -975,13 +974,13 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
     for public, cs in by_public.items():
         if any(decide.testable(again[c.effect], cal) for c in cs):
             continue
-        crb = _crb(again[cs[0].effect], cal)
         alone = [above[c.effect] for c in cs if c.effect in (above or {})]
-        reason = f"not testable with {first.public} in the model: {crb}"
-        if alone:
+        reason = f"not testable with {first.public} in the model: {_crb(again[cs[0].effect], cal)}"
+        if alone:  # the statistic and the bound of one and the same candidate (a unit of a fault)
             a = max(alone, key=lambda q: q.statistic / cal.threshold[q.effect])
             reason = (f"significant alone (S {a.statistic:.1f} against {cal.threshold[a.effect]:.1f}) but not "
-                      f"determined with {first.public} in the model: {crb}; the two are confounded here")
+                      f"determined with {first.public} in the model: {_crb(again[a.effect], cal)}; the two are "
+                      "confounded here")
         out.append({"effect": public, "kind": cs[0].kind, "with": first.public, "reason": reason})
     return out
 
@@ -991,8 +990,12 @@ def _crb(s, cal) -> str:
     parameter's calibrated sd against the smallest error worth finding."""
     sd = decide.best_sd(s, cal)
     rel = float(np.min(sd / np.maximum(s.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
-    return (f"Cramer-Rao sd {rel:.2g}x the smallest error worth finding (a test needs at most "
-            f"{decide.HALF_WORTH_FINDING:g}x)" if math.isfinite(rel) else "the recording carries no information on it")
+    return _crb_words(f"{rel:.2g}") if math.isfinite(rel) else "the recording carries no information on it"
+
+
+def _crb_words(span: str) -> str:
+    """`span` (the calibrated sd over the smallest error worth finding) and the most a test allows."""
+    return f"Cramer-Rao sd {span}x the smallest error worth finding (a test needs at most {decide.HALF_WORTH_FINDING:g}x)"
 
 
 def untestable_reason(effect: str, s, cal, traj, vehicle, rec) -> str:
