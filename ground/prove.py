@@ -770,13 +770,14 @@ def family_table(rows: list[dict]) -> str:
         lines += ["", f"{len(masked)} tested effect(s) the report lists untestable with its first force finding in the "
                       f"model ({', '.join(str(r.get('index', r['case'])) for r in masked)}), counted as misses above; "
                       f"without them: top-1 {rate(test, 'top1')}, top-2 {rate(test, 'top2')}"]
-    blind = [r for r in ok if r["expect"] and not r.get("testable")]
-    wrong = [r for r in blind if set(r.get("named") or []) - set(r["expect"])]
-    if blind:  # the controls' rate does not see these: a finding that is not there, named while the
-        # concealed effect is one the recording cannot test
-        lines += ["", f"effects the recording cannot test: {rate([dict(r, wrong=r in wrong) for r in blind], 'wrong')} "
-                      "named an effect that is not there"
-                      + (f" ({', '.join(str(r.get('index', r['case'])) for r in wrong)})" if wrong else "")]
+    # the controls' rate does not see these: a finding that is not there, named while the concealed
+    # effect is one the recording cannot test
+    blind = [dict(r, wrong=bool(set(r.get("named") or []) - set(r["expect"])))
+             for r in ok if r["expect"] and not r.get("testable")]
+    if blind:
+        wrong = [str(r.get("index", r["case"])) for r in blind if r["wrong"]]
+        lines += ["", f"effects the recording cannot test: {rate(blind, 'wrong')} named an effect that is not there"
+                      + (f" ({', '.join(wrong)})" if wrong else "")]
     lines += ["", "| effect | cases | testable | top-1 (testable) | top-2 (testable) | param within 15 % |", "|---|---|---|---|---|---|"]
     for eff in sorted({r["expect"][0] for r in ok if r["expect"]}):
         sel = [r for r in ok if r["expect"] and r["expect"][0] == eff]
