@@ -467,10 +467,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                         "finding is named")
         findings = []
     # judged again with the first force finding in the model, while the report still makes it
+    above_by = {s.effect: s for s in above}
     masked = _masked_untestable(cands, skip, again, again_with, findings, cal, named | set(rejected) | {
-        f.candidate.public for f, _ in small}, {s.effect: s for s in above})
+        f.candidate.public for f, _ in small}, above_by)
     untestable = untestable + masked
-    above_ids, masked_ids = {s.effect for s in above}, {m["effect"] for m in masked}
+    masked_ids = {m["effect"] for m in masked}
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
         "recording": rec.summary(),
@@ -530,7 +531,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
              "confidence": round(decide.confidence(s, cal, n_fam), 4),
              # this first pass's verdict: a family it found significant stays testable here, and
              # its "with" entry says it is confounded with the first finding (_masked_untestable)
-             "testable": s.effect not in skip and (s.effect in above_ids or public.get(s.effect) not in masked_ids)}
+             "testable": s.effect not in skip and (s.effect in above_by or public.get(s.effect) not in masked_ids)}
             for s in sorted(scores, key=lambda s: -s.statistic / cal.threshold[s.effect])
         ],
         "elapsed_s": round(time.perf_counter() - t_start, 2),
