@@ -180,13 +180,15 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         decide.bias_score([e.traj0 for e in evs], vehicle)]
     # --- calibrate on recordings of the null hypothesis (null.py)
     sig = locate.sensor_noise(rec, floor=True)
-    rng = np.random.default_rng(seed)
     null_scores = []
     null_chi2 = []  # the nominal's held-out chi-square on each draw's windows (the `unknown` gate)
     for b in range(draws):
         t0 = time.perf_counter()
-        recs_b = [null.simulate_window(r, e.traj0, e.actuators(e.traj0, p0, e.base), vehicle, sig, rng,
-                                       start=_state_at(traj, e.traj0.time_s[0])) for r, e in zip(recs_w, evs)]
+        # one random stream per draw and window: a window that moves or drops out leaves the
+        # other windows' draws as they were (one shared stream reshuffled every later draw)
+        recs_b = [null.simulate_window(r, e.traj0, e.actuators(e.traj0, p0, e.base), vehicle, sig,
+                                       np.random.default_rng([seed, b, k]), start=_state_at(traj, e.traj0.time_s[0]))
+                  for k, (r, e) in enumerate(zip(recs_w, evs))]
         evs_b = [Evaluator(r, vehicle, lead, runs) for r, lead in zip(recs_b, leads)]
         ev_b = SegmentedEvaluator(evs_b)
         res_b = ev_b.residual(ev_b.base)
