@@ -1100,7 +1100,8 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     SECOND_MARGIN x the next candidate (those left out of `public`, not testable, do not count);
     not when another candidate tops it, not when the top is not among the refused pairs
     or is a local effect, not under SECOND_STANDOUT x its threshold, not when a ratio is not
-    finite; a thrust curve and a thruster fault are one name."""
+    finite; a thrust curve and a thruster fault are one name; a local effect whose own pair
+    was not refused by its share (dev 6159's wall effect, within one sd) is no competitor."""
     ratios = {"thrust_inflow": 108.4, "linear_damping": 42.7, "quadratic_damping": 42.4, "wall_proximity": 300.0,
               "thrust_curve": 30.0, "thruster_fault": 40.0}
     cal = types.SimpleNamespace(threshold={e: 14.0 + i for i, e in enumerate(ratios)})
@@ -1112,11 +1113,13 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     standout = lambda sh=shared, pub=public, ag=again: core._standout(sh, ag, cal, pub, None)  # noqa: E731
     assert standout() == shared[0]
     assert standout(pub=public | {"wall_proximity": "wall_proximity"}) is None  # the wall effect tops it, never picked
+    assert standout(sh=[shared[0], shared[1]], pub=public | {"wall_proximity": "wall_proximity"}) == shared[0]
     assert standout(sh=shared[1:]) is None
     assert core.SECOND_MARGIN * 42.7 < 108.4  # the inflow stands out by its margin alone
     assert standout(ag=again | {"linear_damping": score("linear_damping", 108.4 / core.SECOND_MARGIN + 0.1)}) is None
-    assert standout(ag=again | {"thrust_inflow": score("thrust_inflow", 9.0),
-                               "linear_damping": score("linear_damping", 0.0)}) is None
+    alone = {e: score(e, 0.0) for e in ratios}  # the inflow alone above 1x: only SECOND_STANDOUT judges it
+    assert standout(ag=alone | {"thrust_inflow": score("thrust_inflow", core.SECOND_STANDOUT - 0.1)}) is None
+    assert standout(ag=alone | {"thrust_inflow": score("thrust_inflow", core.SECOND_STANDOUT + 0.1)}) == shared[0]
     assert standout(ag=again | {"thrust_inflow": score("thrust_inflow", 11.0), "linear_damping": score("linear_damping", 0.0),
                                "quadratic_damping": score("quadratic_damping", 0.0), "thruster_fault": score("thruster_fault", 5.0),
                                "thrust_curve": score("thrust_curve", 5.0)}) == shared[0]

@@ -30,7 +30,7 @@ RANK_TOP = 6  # significant candidates fitted nonlinearly to rank them
 RANK_TANGENT_FAILED = 2  # ... and the significant ones whose linear step did not carry to held-out data
 SECOND_MIN_GAIN = 0.10  # a second effect must add this share of the first one's held-out drop
 SECOND_MIN_GAIN_NESTED = 0.15  # ... when it was tested on the first pass only (no second pass)
-SECOND_STANDOUT = 10.0  # a second refused by its share alone is still paired when its second-pass
+SECOND_STANDOUT = 4.0  # a second refused by its share alone is still paired when its second-pass
 SECOND_MARGIN = 2.0  # S is this many times its threshold and this many times any other's (`_standout`)
 POLISH_ITER = 12  # the first finding's fit is run on from where the ranking fit stopped: this many more evaluations (`_polish`)
 REFIT_PASSES = 3  # a lone finding's fit re-run on windows re-estimated with it, at most this often (`_reestimated`)
@@ -682,8 +682,9 @@ def _standout(shared: list, again: dict, cal, public: dict, progress):
     by reported name (`public`: effect -> name of the testable candidates that are not the
     first's namesakes; a thrust curve and a thruster fault are one name, the larger ratio); a
     ratio that is not finite judges nothing (None); the local effects are never picked (their
-    score counts a step their parameter bounds may not reach: the README's known gaps) but count
-    as the next.
+    score counts a step their parameter bounds may not reach: the README's known gaps) and count
+    as the next only when their own pair is among `shared` (a pair that failed for another reason,
+    within one sd or worse held out, shows that step was not there).
 
     Dev evidence (the 69 masked cases of eval blocks 3832-4431 and 40 of their single-effect cases,
     re-diagnosed as development data on 2026-11-27): five masked seconds scored 17-720x their
@@ -701,11 +702,22 @@ def _standout(shared: list, again: dict, cal, public: dict, progress):
     filters, 22 dev cases named the transient first (3847, 4055, 4175, ten of 4132-4713, nine
     of 5156-5260) top their second pass at 0.3-10.3x the threshold, 1.1x the next where over
     SECOND_STANDOUT (3847's linear damping), but for two true seconds: 4175's buoyancy 4.1x and
-    5260's restoring moment 6.2x the next, paired under either margin; so one margin now."""
+    5260's restoring moment 6.2x the next, paired under either margin; so one margin now.
+
+    SECOND_STANDOUT 10 -> 4 and the local effects' `shared` condition (2026-11-28/29, dev data:
+    the stored eval blocks 5932-6831, re-diagnosed with this function's inputs logged and both
+    rules scored on them): 6336's added mass under a servo lag (4.4x its threshold, 2.2x the
+    next), 6828's thrust-inflow mask beside its servo lag (5.4x, 5.1x), and 6159's added mass
+    (12.5x) behind a wall effect (26x) whose pair had been refused as within one sd, are named
+    second; no new false
+    second on 159 single-effect cases re-diagnosed (all 92 whose first was a lag, transient or
+    delay, 67 drawn six per first otherwise); only 7 of them reached this function with a pair
+    to judge, the closest 6390's restoring moment at 26.8x but 1.96x the next, held by the margin."""
     ratio: dict = {}  # name -> (S / threshold, effect)
+    refused = {p[1].effect for p in shared}
     for e, name in public.items():
         q, thr = again.get(e), cal.threshold.get(e, 0.0)
-        if q is None or not thr > 0:
+        if q is None or not thr > 0 or (e in LOCAL_EFFECTS and e not in refused):
             continue
         r = q.statistic / thr
         if not math.isfinite(r):
