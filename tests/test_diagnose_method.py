@@ -1101,7 +1101,8 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     not when another candidate tops it, not when the top is not among the refused pairs
     or is a local effect, not under SECOND_STANDOUT x its threshold, not when a ratio is not
     finite; a thrust curve and a thruster fault are one name; a local effect whose own pair
-    was not refused by its share (dev 6159's wall effect, within one sd) is no competitor."""
+    failed another rule (dev 6159's wall effect, within one sd) is no competitor, one not fitted
+    in a pair still is; 6336's added mass (4.4x its threshold, 2.2x the next) is paired."""
     ratios = {"thrust_inflow": 108.4, "linear_damping": 42.7, "quadratic_damping": 42.4, "wall_proximity": 300.0,
               "thrust_curve": 30.0, "thruster_fault": 40.0}
     cal = types.SimpleNamespace(threshold={e: 14.0 + i for i, e in enumerate(ratios)})
@@ -1110,16 +1111,21 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     pair = lambda e: ("fit", types.SimpleNamespace(effect=e), again[e])  # noqa: E731
     shared = [pair("thrust_inflow"), pair("linear_damping"), pair("wall_proximity")]
     public = {e: e for e in ratios if e != "wall_proximity"} | {"thrust_curve": "thruster_fault"}
-    standout = lambda sh=shared, pub=public, ag=again: core._standout(sh, ag, cal, pub, None)  # noqa: E731
+    standout = lambda sh=shared, pub=public, ag=again, fl=(): core._standout(sh, set(fl), ag, cal, pub, None)  # noqa: E731
     assert standout() == shared[0]
     assert standout(pub=public | {"wall_proximity": "wall_proximity"}) is None  # the wall effect tops it, never picked
-    assert standout(sh=[shared[0], shared[1]], pub=public | {"wall_proximity": "wall_proximity"}) == shared[0]
+    wall = public | {"wall_proximity": "wall_proximity"}
+    assert standout(sh=shared[:2], pub=wall) is None  # not fitted in a pair: still the top
+    assert standout(sh=shared[:2], pub=wall, fl={"wall_proximity"}) == shared[0]  # its pair failed: no competitor
+    assert standout(pub=wall, fl={"linear_damping"}) is None  # only a local effect's failure counts
     assert standout(sh=shared[1:]) is None
     assert core.SECOND_MARGIN * 42.7 < 108.4  # the inflow stands out by its margin alone
     assert standout(ag=again | {"linear_damping": score("linear_damping", 108.4 / core.SECOND_MARGIN + 0.1)}) is None
     alone = {e: score(e, 0.0) for e in ratios}  # the inflow alone above 1x: only SECOND_STANDOUT judges it
     assert standout(ag=alone | {"thrust_inflow": score("thrust_inflow", core.SECOND_STANDOUT - 0.1)}) is None
     assert standout(ag=alone | {"thrust_inflow": score("thrust_inflow", core.SECOND_STANDOUT + 0.1)}) == shared[0]
+    assert standout(ag=alone | {"thrust_inflow": score("thrust_inflow", 4.4),
+                                "linear_damping": score("linear_damping", 2.0)}) == shared[0]  # dev 6336's ratios
     assert standout(ag=again | {"thrust_inflow": score("thrust_inflow", 11.0), "linear_damping": score("linear_damping", 0.0),
                                "quadratic_damping": score("quadratic_damping", 0.0), "thruster_fault": score("thruster_fault", 5.0),
                                "thrust_curve": score("thrust_curve", 5.0)}) == shared[0]
@@ -1438,7 +1444,9 @@ def test_settling_counts_from_each_segments_first_plausible_depth_or_its_first_d
                                                             "damping passes its threshold on this perfect recording "
                                                             "without any depth and is rejected held out: no "
                                                             "finding, but not 'nothing rejected'; at draw seeds "
-                                                            "1-3 nothing passes (a review: the draws, reshuffled)"))])
+                                                            "1-3 of the shared stream nothing passed (a review); "
+                                                            "with one stream per draw and window (22efbc1) it "
+                                                            "still passes"))])
 def test_a_wrong_start_of_the_pressure_names_nothing_on_a_perfect_recording(tmp_path_factory, tamper):
     """A hostile session's finds against a 1 s, 2 m/s vote (60 s, 50 Hz IMU, no motion capture):
     +1 m on the first sample was voted plausible, became the initial depth and took the held-out
