@@ -715,11 +715,11 @@ def _standout(shared: list, failed: set, again: dict, cal, public: dict, progres
     rules scored on them): 6336's added mass under a servo lag (4.4x its threshold, 2.2x the
     next), 6828's thrust-inflow mask beside its servo lag (5.4x, 5.1x), and 6159's added mass
     (12.5x) behind a wall effect (26x) whose pair had been refused as within one sd, are named
-    second; no new false
-    second on 159 single-effect cases re-diagnosed (all 92 whose first was a lag, transient or
-    delay; 67 more with a first finding, drawn six per first among those whose stored diagnosis
-    took at most 45 s); only 7 of them reached this function with a pair to judge, the closest
-    6390's restoring moment at 26.8x but 1.96x the next, held by the margin. The offline scoring
+    second; no new false second on 159 single-effect cases re-diagnosed (all 92 whose first was
+    a lag, transient or delay; 67 more with a first finding, drawn six per first among those
+    whose stored diagnosis took at most 45 s); only 7 of them reached this function with a pair
+    to judge, the closest 6390's restoring moment at 26.8x but 1.96x the next, held by the
+    margin. Fresh block 6832-7131 (README benchmark) measured it. The offline scoring
     skipped a local effect whenever its pair was not in `shared`; the rule kept here skips it
     only when its pair failed (6159's wall effect did), so it picks a subset of what was scored.
     The 22 transient-first cases above were judged at 10x; 4x was not re-scored on them."""
