@@ -1445,8 +1445,8 @@ def test_settling_counts_from_each_segments_first_plausible_depth_or_its_first_d
                                                             "without any depth and is rejected held out: no "
                                                             "finding, but not 'nothing rejected'; at draw seeds "
                                                             "1-3 of the shared stream nothing passed (a review); "
-                                                            "with one stream per draw and window (22efbc1) it "
-                                                            "still passes"))])
+                                                            "with one stream per draw and window (22efbc1) the "
+                                                            "linear damping still passes its threshold"))])
 def test_a_wrong_start_of_the_pressure_names_nothing_on_a_perfect_recording(tmp_path_factory, tamper):
     """A hostile session's finds against a 1 s, 2 m/s vote (60 s, 50 Hz IMU, no motion capture):
     +1 m on the first sample was voted plausible, became the initial depth and took the held-out
