@@ -1136,27 +1136,6 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
         assert standout(ag=again | {"quadratic_damping": types.SimpleNamespace(statistic=bad)}) is None
 
 
-def test_an_imu_bias_far_above_its_threshold_is_listed_before_the_force_named_with_it():
-    """core._bias_first, with the numbers of dev reports (1200 stored, 5932-7131): a true gyro bias
-    masked by a 0.005 m centre-of-buoyancy error (6900: the bias alone 0.230 held out, the restoring
-    moment 0.041; S / threshold 10,043 and 624) and by a buoyancy error (6934: 0.098 and 0.093;
-    60,723 and 483) goes first by its ratio; the false biases beside a sensor delay (6423: 159 and
-    119; 6878: 70.6 and 37.6) stay second, and a bias whose NRMSE alone beats the forces' goes
-    first whatever its ratio. Not a finite comparison: second."""
-    assert core._bias_first(0.230, 0.041, 10043.0, 624.0)  # 16.1x the restoring moment's
-    assert core._bias_first(0.098, 0.093, 60723.0, 483.0)  # 126x the buoyancy's
-    assert not core._bias_first(0.10, 0.05, 159.0, 119.0)  # 1.3x the delay's
-    assert not core._bias_first(0.10, 0.05, 70.6, 37.6)  # 1.9x
-    assert not core._bias_first(0.10, 0.05, 9.0 * 30.0, 30.0)  # the largest of a true force's (dev 5985)
-    assert core._bias_first(0.10, 0.05, 14.7 * 30.0, 30.0)  # the smallest of a true bias's (dev 6730)
-    assert core._bias_first(0.10, 0.05, core.BIAS_FIRST_RATIO * 30.0, 30.0)
-    assert not core._bias_first(0.10, 0.05, core.BIAS_FIRST_RATIO * 30.0 - 0.1, 30.0)
-    assert core._bias_first(0.04, 0.05, 2.0, 30.0)  # it explains more alone
-    assert not core._bias_first(0.10, 0.05, math.nan, 30.0)
-    for bad in (math.nan, math.inf):
-        assert not core._bias_first(bad, 0.05, 2.0, bad)
-
-
 def test_the_page_opens_with_the_same_no_finding_line_as_the_summary(tmp_path):
     from ground.diagnose.cli import summary_text
     from ground.diagnose.report import _page

@@ -284,8 +284,7 @@ def test_a_reader_that_leaves_early_ends_the_command_quietly(tmp_path):
 @pytest.mark.parametrize("index, first", [(1854, ["added_mass", "imu_bias"]), (1441, ["imu_bias", "buoyancy"])])
 def test_an_imu_bias_named_with_a_force_is_listed_by_what_it_explains(index, first, tmp_path):
     """An IMU bias named with forces is listed first only when its held-out NRMSE alone beats
-    the forces' together or it stands BIAS_FIRST_RATIO x further above its threshold than the
-    first force (core._bias_first); the expected orders are those the dev runs gave. Dev cases (eval block 1696-1995 and earlier, now development): added
+    the forces' together (core.diagnose); the expected orders are those the dev runs gave. Dev cases (eval block 1696-1995 and earlier, now development): added
     mass 3.9x with a 1x gyro bias masking it, the bias first until 2026-11-26 because it stood
     further above its threshold; and a 4.3x gyro bias with a 1x buoyancy error, the bias first."""
     row = run_family_case("eval", index, tmp_path)

@@ -32,8 +32,6 @@ SECOND_MIN_GAIN = 0.10  # a second effect must add this share of the first one's
 SECOND_MIN_GAIN_NESTED = 0.15  # ... when it was tested on the first pass only (no second pass)
 SECOND_STANDOUT = 4.0  # a second refused by its share alone is still paired when its second-pass
 SECOND_MARGIN = 2.0  # S is this many times its threshold and this many times any other's (`_standout`)
-BIAS_FIRST_RATIO = 12.0  # an IMU bias named with forces is listed first when its S / threshold is this
-# many times the first force's, whatever each explains alone (`_bias_first`)
 POLISH_ITER = 12  # the first finding's fit is run on from where the ranking fit stopped: this many more evaluations (`_polish`)
 REFIT_PASSES = 3  # a lone finding's fit re-run on windows re-estimated with it, at most this often (`_reestimated`)
 REFIT_SETTLED = 0.02  # ... until no parameter moves more than this share of its scale
@@ -423,20 +421,15 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                          cal=cal, n_fam=n_fam) for f in chosen]
     if bias_named:
         # the bias is listed first when its held-out NRMSE alone beats the forces named with it
-        # (together) or it stands far further above its threshold than the first of them
-        # (`_bias_first`), after them otherwise. First whenever named, it had come before the main
-        # effect in 3 of the 10 masked cases of eval 1696-1995 whose second effect was named first
-        # (1741, 1854, 1947)
-        first = True
+        # (together), after them otherwise (or when no held-out stretch can say). First whenever
+        # named, it had come before the main effect in 3 of the 10 masked cases of eval
+        # 1696-1995 whose second effect was named first (1741, 1854, 1947)
         if chosen:  # compared over the signals both keep (paired_totals)
             alone, forces = paired_totals(
                 _shoot_holdout(ev, traj, split, ev.base, _with_bias(ev.base, bias), None, mdiag)["nrmse_after"],
                 _shoot_holdout(ev, traj, split, ev.base, final.model, None, mdiag)["nrmse_after"])
-            lead = chosen[0].candidate.effect
-            ratios = (bias.statistic / cal.threshold["imu_bias"], by_effect[lead].statistic / cal.threshold[lead])
-            _say(progress, f"imu_bias alone: held-out NRMSE {alone:.3f}; the forces named, without it, {forces:.3f}; "
-                           f"S / threshold {ratios[0]:.1f}, {lead}'s {ratios[1]:.1f}")
-            first = _bias_first(alone, forces, *ratios)
+            _say(progress, f"imu_bias alone: held-out NRMSE {alone:.3f}; the forces named, without it, {forces:.3f}")
+        first = not chosen or alone < forces
         findings.insert(0 if first else len(findings), _bias_finding(bias, cal, n_fam))
     if unknown is not None:
         entry = {"effect": "unknown", "kind": "missing",
@@ -682,20 +675,6 @@ def _reestimated(recs_w, leads, runs, f: Fit, split, res0, sd, vehicle: Vehicle,
         if step < REFIT_SETTLED:
             break
     return None if g is f or moved(g, f) < REFIT_SETTLED else g  # settled where it was: the first stands
-
-
-def _bias_first(alone: float, forces: float, bias_ratio: float, force_ratio: float) -> bool:
-    """Whether an IMU bias named with forces is listed before them: when its held-out NRMSE alone
-    beats the forces' together, or when its calibrated ratio (S / threshold) is BIAS_FIRST_RATIO x
-    the first force's. The NRMSE alone misorders a true bias masked by a small force: a 0.005 m
-    centre-of-buoyancy error moves the held-out fit more than a bias 1.3-3.1x its own (dev 6900:
-    0.230 against 0.041, while the bias stood 10,043x its threshold and the restoring moment 624x).
-    On the 1200 stored reports of 5932-7131 (development data, 2026-11-28), 18 named an IMU bias
-    second behind a force: the bias's ratio over the first force's was 14.7-1134 in the 11 where the
-    bias was the concealed effect, 1.3-9.0 in six of the 7 where the force was (false biases beside
-    a sensor delay, 6423 and 6878: 1.3 and 1.9) and 566 in 6574 (a true added mass 3x its threshold,
-    the bias its mask); 12 is near the middle of the gap (geometric mean of 9.0 and 14.7: 11.5)."""
-    return alone < forces or bias_ratio >= BIAS_FIRST_RATIO * force_ratio
 
 
 def _standout(shared: list, failed: set, again: dict, cal, public: dict, progress):
