@@ -719,7 +719,7 @@ def _standout(shared: list, failed: set, again: dict, cal, public: dict, progres
     a lag, transient or delay; 67 more with a first finding, drawn six per first among those
     whose stored diagnosis took at most 45 s); only 7 of them reached this function with a pair
     to judge, the closest 6390's restoring moment at 26.8x but 1.96x the next, held by the
-    margin. Fresh block 6832-7131 (README benchmark) measured it. The offline scoring
+    margin. The fresh blocks 6832-7131 and 7132-7431 (README benchmark) measured it. The offline scoring
     skipped a local effect whenever its pair was not in `shared`; the rule kept here skips it
     only when its pair failed (6159's wall effect did), so it picks a subset of what was scored.
     The 22 transient-first cases above were judged at 10x; 4x was not re-scored on them."""
