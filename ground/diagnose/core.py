@@ -249,10 +249,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     again, again_with = None, None  # the second pass's scores (effect -> Score) and the candidate in its model
     second_test: dict = {}  # id(the second finding's Fit) -> (that Fit, its Score, the first effect it was tested
     # with); holding the Fit keeps its id from being reused by a Fit made after a rejected pair
-    if single:
-        best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, decide.calibrated_sd(
-            by_effect[single[0].candidate.effect], cal), vehicle, progress)  # ranked by the ranking fits
+    while single:  # once more with the next single fit when a second displaces the first
+        sd1 = decide.calibrated_sd(by_effect[single[0].candidate.effect], cal)
+        best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, sd1, vehicle, progress)  # ranked by the ranking fits
         chosen, final = [best], best
+        displaced = None  # a second finding sized beside the first where the first is not (its Fit alone)
         # a second effect: the candidates scored again with the first finding in the model (the
         # smoother re-run on the fitting windows, `_second_pass`; the first pass's nested score
         # test when the first is not a vehicle the smoother takes), each significant one fitted
@@ -272,27 +273,40 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 start = tuple(fit(ev_fit, oc, split_fit, res0_fit, base=best.model, x0=start).theta)
             pf = fit(ev_fit, combine(best.candidate, oc), split_fit, res0_fit, x0=tuple(best.theta) + tuple(start))
             gain = pf.delta_holdout - best.delta_holdout
-            theta2, sd2 = pf.theta[best.candidate.n_params:], decide.calibrated_sd(sc, cal)
+            n1 = best.candidate.n_params
+            theta2, sd2 = pf.theta[n1:], decide.calibrated_sd(sc, cal)
             why = ("the pair fits worse held out (chi2 +{:.1f})".format(-gain) if not gain > 0
-                   else _too_small(oc, theta2, sd2, 1.0, vehicle, gain))  # the rules for a first finding but its share
+                   else _too_small(oc, theta2, sd2, 1.0, vehicle, gain, _part(pf.sd, n1, None)))  # the rules for a first finding but its share
             if why:
                 _say(progress, f"{oc.effect} not paired: {why}")
                 failed.add(oc.effect)
                 continue
-            n1 = best.candidate.n_params
-            if n1 and _too_small(best.candidate, pf.theta[:n1], decide.calibrated_sd(by_effect[best.candidate.effect], cal),
-                                 best.explained, vehicle, best.delta_holdout):
+            if n1 and _too_small(best.candidate, pf.theta[:n1], sd1, best.explained, vehicle, best.delta_holdout):
                 _say(progress, f"{oc.effect} not paired: the pair moves {best.candidate.effect} below what is worth naming")
                 failed.add(oc.effect)
                 continue  # and the first, moved by the pair, must still be worth naming
             thin = (_too_small(oc, theta2, sd2, pf.explained - best.explained, vehicle, gain)
                     or (f"it adds chi2 -{gain:.1f} held out, under {100 * share:.0f} % of "
                         f"{best.candidate.effect}'s -{best.delta_holdout:.1f}" if not gain > share * best.delta_holdout else ""))
+            unsized = "" if thin else _unsized(best.candidate, sd1, _part(pf.sd, 0, n1), vehicle)
+            solo = next((f for f in single[1:] if f.candidate.effect == oc.effect), None)
             if thin:  # its share of the pair: of the held-out excess, and of the first's drop
                 _say(progress, f"{oc.effect} not paired on its share: {thin}")
                 shared.append((pf, oc, sc))
+            elif unsized and solo is not None:  # the second sized beside the first, the first not beside
+                # it: the second explains what the first does, not the other way round (eval 7243)
+                displaced = (solo, f"beside {oc.effect} {unsized}")
+                break
             elif best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout:
                 best_pair = (pf, oc, sc)
+        if displaced is not None:
+            solo, why = displaced
+            _say(progress, f"{best.candidate.effect} not named: {why}")
+            small.append((single.pop(0), why))
+            single.remove(solo)
+            single.insert(0, solo)
+            chosen, final, again, again_with, second_test = [], None, None, None, {}
+            continue
         if best_pair is None and again is not None:
             public = {c.effect: c.public for c in cands if c.effect not in skip and c.public != best.candidate.public}
             best_pair = _standout(shared, failed, again, cal, public, progress)
@@ -303,6 +317,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             # (only for it: the first round's table, the IMU bias's rank and a finding named
             # alone after a rejected pair keep the first round's)
             second_test[id(chosen[1])] = (chosen[1], sc, best.candidate.public if again is not None else None)
+        break
     # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
     bias_named = any(s.effect == "imu_bias" for s in significant) and (not chosen or bias.statistic / cal.threshold[
@@ -819,7 +834,15 @@ def negligible(small: list, reported: set) -> list:
              "why": why} for f, why in small if f.candidate.public not in reported]
 
 
-def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float = math.inf) -> str:
+def reported_sd(sd, fit_sd):
+    """A finding's reported sd: the calibrated `sd` (decide.calibrated_sd), not below the fit's
+    own `fit_sd` with its residuals' colour (candidates.sandwich_sd) when it has one of that shape."""
+    if fit_sd is not None and sd is not None and np.shape(fit_sd) == np.shape(sd):
+        return np.maximum(sd, fit_sd)
+    return sd
+
+
+def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float = math.inf, fit_sd=None) -> str:
     """Why a significant, better-fitting correction is still no finding ('' when it is one): under
     half the smallest error worth finding (decide.correction_size), within one sd of its nominal
     value (decide.within_noise), removing under MIN_EXPLAINED of the held-out excess, or a
@@ -831,11 +854,24 @@ def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float 
         return "its correction is under half the smallest error worth finding"
     if decide.within_noise(cand, theta, sd):
         return "its correction is within one sd of the nominal value"
+    unsized = _unsized(cand, sd, fit_sd, vehicle) if fit_sd is not None else ""
+    if unsized:
+        return unsized
     if explained < MIN_EXPLAINED and cand.effect not in LOCAL_EFFECTS:
         return f"its fit removes {100 * reported_share(explained):.1f} % of the held-out mismatch"
     p = max(cand.n_params, 1)
     if not drop > Z_GATE * math.sqrt(2.0 * p):
         return f"its held-out improvement (chi2 -{drop:.1f}) is within the noise of a {p}-parameter fit"
+    return ""
+
+
+def _unsized(cand, sd, fit_sd, vehicle: Vehicle) -> str:
+    """Why a fit is no finding by its reported sd (`reported_sd` of the calibrated `sd` and the
+    fit's own): above decide.SIZE_SD of the smallest error worth finding on its best-determined
+    parameter, the recording cannot size it ('' when it can)."""
+    r = decide.sd_in_worth(cand, reported_sd(sd, fit_sd), vehicle)
+    if r > decide.SIZE_SD:
+        return f"its sd is {r:.2g}x the smallest error worth finding on its best-determined parameter: the recording cannot size it"
     return ""
 
 
@@ -1072,6 +1108,11 @@ def _with_bias(cm: CorrectedModel, bias) -> CorrectedModel:
         cm.correction, gyro_bias=tuple(bias.theta[:3]), accel_bias=tuple(bias.theta[3:])))
 
 
+def _part(sd, a: int, b):
+    """sd[a:b] of a pair fit's sd, or None when the fit has none."""
+    return None if sd is None else sd[a:b]
+
+
 def _split_pair(pf: Fit, a: Fit, cb: Candidate, res0: np.ndarray):
     """The two findings of a pair fit (the first `a`, the second's candidate `cb`): each with its
     share of the joint parameters and of the correction (the second's residual is the nominal's
@@ -1118,9 +1159,7 @@ def _finding(f: Fit, vehicle: Vehicle, score, tested_with: str | None = None, *,
            "explanation": explanation, "heldout_chi2_drop": round(f.delta_holdout, 1),
            "explained": round(explained, 3), "bic": round(f.bic, 1), "axes": axes}
     if score is not None and c.n_params and score.effect == c.effect:
-        sd = decide.calibrated_sd(score, cal)
-        if f.sd is not None and np.shape(f.sd) == np.shape(sd):  # and not below the fit's own,
-            sd = np.maximum(sd, f.sd)  # with its residuals' colour (candidates.sandwich_sd)
+        sd = reported_sd(decide.calibrated_sd(score, cal), f.sd)
         out["std"] = c.parameters(sd, vehicle, deviations=True)
         out["statistic"] = round(score.statistic, 1)
         out["threshold"] = round(cal.threshold[c.effect], 1)
