@@ -249,11 +249,13 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     again, again_with = None, None  # the second pass's scores (effect -> Score) and the candidate in its model
     second_test: dict = {}  # id(the second finding's Fit) -> (that Fit, its Score, the first effect it was tested
     # with); holding the Fit keeps its id from being reused by a Fit made after a rejected pair
-    while single:  # once more with the next single fit when a second displaces the first
+    confounded = []  # (first displaced, the second that displaced it, why): listed untestable with it
+    gone = set()  # the effects displaced (none comes back first)
+    while single:  # once more, the displacing second first, when a second displaces the first
         sd1 = decide.calibrated_sd(by_effect[single[0].candidate.effect], cal)
         best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, sd1, vehicle, progress)  # ranked by the ranking fits
         chosen, final = [best], best
-        displaced = None  # a second finding sized beside the first where the first is not (its Fit alone)
+        displaced = None  # (the second's lone Fit, its candidate, why): the first pair leaving the first unsized
         # a second effect: the candidates scored again with the first finding in the model (the
         # smoother re-run on the fitting windows, `_second_pass`; the first pass's nested score
         # test when the first is not a vehicle the smoother takes), each significant one fitted
@@ -276,7 +278,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             n1 = best.candidate.n_params
             theta2, sd2 = pf.theta[n1:], decide.calibrated_sd(sc, cal)
             why = ("the pair fits worse held out (chi2 +{:.1f})".format(-gain) if not gain > 0
-                   else _too_small(oc, theta2, sd2, 1.0, vehicle, gain, _part(pf.sd, n1, None)))  # the rules for a first finding but its share
+                   else _too_small(oc, theta2, sd2, 1.0, vehicle, gain, _part(pf.sd, n1, None)))
+            # the rules for a first finding but its share, judged by the pair's sd (`_unsized`)
             if why:
                 _say(progress, f"{oc.effect} not paired: {why}")
                 failed.add(oc.effect)
@@ -285,24 +288,31 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 _say(progress, f"{oc.effect} not paired: the pair moves {best.candidate.effect} below what is worth naming")
                 failed.add(oc.effect)
                 continue  # and the first, moved by the pair, must still be worth naming
+            unsized = _unsized(best.candidate, sd1, pf.sd[:n1], vehicle) if pf.sd is not None else ""
+            if unsized:  # the second sized beside the first, the first not beside it: the second
+                # explains what the first does, not the other way round (eval 7243). Not paired; the
+                # first displaced by it after the loop when no pair keeps the first sized and the
+                # second has a lone fit of its own (a first-round one, on its own evidence)
+                solo = None if alone else next((f for f in single[1:] if f.candidate is oc), None)
+                if displaced is None and solo is not None and oc.effect not in gone:
+                    displaced = (solo, oc, unsized)
+                _say(progress, f"{oc.effect} not paired: beside it {best.candidate.effect}'s {unsized}")
+                failed.add(oc.effect)
+                continue
             thin = (_too_small(oc, theta2, sd2, pf.explained - best.explained, vehicle, gain)
                     or (f"it adds chi2 -{gain:.1f} held out, under {100 * share:.0f} % of "
                         f"{best.candidate.effect}'s -{best.delta_holdout:.1f}" if not gain > share * best.delta_holdout else ""))
-            unsized = "" if thin else _unsized(best.candidate, sd1, _part(pf.sd, 0, n1), vehicle)
-            solo = next((f for f in single[1:] if f.candidate.effect == oc.effect), None)
             if thin:  # its share of the pair: of the held-out excess, and of the first's drop
                 _say(progress, f"{oc.effect} not paired on its share: {thin}")
                 shared.append((pf, oc, sc))
-            elif unsized and solo is not None:  # the second sized beside the first, the first not beside
-                # it: the second explains what the first does, not the other way round (eval 7243)
-                displaced = (solo, f"beside {oc.effect} {unsized}")
-                break
             elif best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout:
                 best_pair = (pf, oc, sc)
-        if displaced is not None:
-            solo, why = displaced
-            _say(progress, f"{best.candidate.effect} not named: {why}")
-            small.append((single.pop(0), why))
+        if best_pair is None and displaced is not None:  # the displacing second first, the first
+            # kept after it (an alternative if the held-out fit refuses what is named)
+            solo, oc, why = displaced
+            _say(progress, f"{best.candidate.effect} not named first: beside {oc.effect} its {why}")
+            confounded.append((best.candidate, oc, why))
+            gone.add(best.candidate.effect)
             single.remove(solo)
             single.insert(0, solo)
             chosen, final, again, again_with, second_test = [], None, None, None, {}
@@ -493,6 +503,12 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     masked = _masked_untestable(cands, skip, again, again_with, findings, cal, named | set(rejected) | {
         f.candidate.public for f, _ in small}, above_by)
     untestable = untestable + masked
+    # a first displaced by a second that leaves it unsized, while that second is named
+    listed = named | {u["effect"] for u in untestable}
+    untestable = untestable + [
+        {"effect": c.public, "kind": c.kind, "with": oc.public,
+         "reason": f"significant alone but not sized with {oc.public} in the model: {why}; the two are confounded here"}
+        for c, oc, why in confounded if oc.public in named and c.public not in listed]
     masked_ids = {m["effect"] for m in masked}
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
@@ -849,7 +865,8 @@ def _too_small(cand, theta, sd, explained: float, vehicle: Vehicle, drop: float 
     held-out chi-square `drop` within the noise of a fit of its p parameters (not above Z_GATE
     sd of sqrt(2 p)): eval control 2180 had an added mass named on a drop of 2.1, all of the
     held-out excess there was; the right findings of 125 re-diagnosed cases of block 1996-2295
-    dropped 118 or more."""
+    dropped 118 or more. Given a fit's own `fit_sd` (a pair's second, judged by the pair fit):
+    also not sized by its reported sd (`_unsized`)."""
     if decide.correction_size(cand, theta, vehicle, sd) < decide.HALF_WORTH_FINDING:
         return "its correction is under half the smallest error worth finding"
     if decide.within_noise(cand, theta, sd):

@@ -443,11 +443,12 @@ def sd_in_worth(cand, sd, vehicle) -> float:
     reports stood at up to 5.5x, true motor lags at up to 1.9x)."""
     if sd is None or not cand.n_params or cand.switch_on:
         return 0.0
-    ref = np.maximum(np.asarray(reference_magnitude(cand, vehicle), float), 1e-300)
+    ref = np.asarray(reference_magnitude(cand, vehicle), float)
     sd = np.asarray(sd, float)
-    if sd.shape != ref.shape:
+    sized = ref > 1e-9  # not a nominally zero term (reference_magnitude's floor: no relative size)
+    if sd.shape != ref.shape or not sized.any():
         return 0.0
-    return float(np.min(np.nan_to_num(sd, nan=np.inf) / ref))
+    return float(np.min(np.nan_to_num(sd[sized], nan=np.inf) / ref[sized]))
 
 
 def within_noise(cand, theta, sd) -> bool:
