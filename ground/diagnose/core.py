@@ -296,7 +296,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 solo = None if alone else next((f for f in single[1:] if f.candidate is oc), None)
                 if displaced is None and solo is not None and oc.effect not in gone:
                     displaced = (solo, oc, unsized)
-                _say(progress, f"{oc.effect} not paired: beside it {best.candidate.effect}'s {unsized}")
+                _say(progress, f"{oc.effect} not paired: beside it, {best.candidate.effect}: {unsized}")
                 failed.add(oc.effect)
                 continue
             thin = (_too_small(oc, theta2, sd2, pf.explained - best.explained, vehicle, gain)
@@ -310,7 +310,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         if best_pair is None and displaced is not None:  # the displacing second first, the first
             # kept after it (an alternative if the held-out fit refuses what is named)
             solo, oc, why = displaced
-            _say(progress, f"{best.candidate.effect} not named first: beside {oc.effect} its {why}")
+            _say(progress, f"{best.candidate.effect} not named first: beside {oc.effect}, {why}")
             confounded.append((best.candidate, oc, why))
             gone.add(best.candidate.effect)
             single.remove(solo)
