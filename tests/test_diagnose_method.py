@@ -1106,6 +1106,9 @@ def test_a_fit_whose_sd_exceeds_the_smallest_error_worth_finding_everywhere_is_n
     assert decide.sd_in_worth(am, np.r_[1.1 * ref[:5], 0.9 * ref[5]], V) == pytest.approx(0.9)
     assert decide.sd_in_worth(am, None, V) == 0.0 and decide.sd_in_worth(am, ref[:3], V) == 0.0
     assert decide.sd_in_worth(am, np.full(6, np.nan), V) == math.inf
+    # the shared measure: a NaN sd determines nothing (0.3 / 0.1 = 3 is the best-determined here)
+    assert decide.relative_sd([np.nan, 0.3], [1.0, 0.1]) == pytest.approx(3.0)
+    assert decide.relative_sd([np.nan, np.nan], [1.0, 0.1]) == math.inf
     np.testing.assert_allclose(core.reported_sd(0.1 * ref, 1.1 * ref), 1.1 * ref)
     np.testing.assert_allclose(core.reported_sd(0.1 * ref, None), 0.1 * ref)
     theta = np.array(am.x0) * 3.0  # 10 reference magnitudes off on every term: no other rule refuses it

@@ -277,8 +277,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             gain = pf.delta_holdout - best.delta_holdout
             n1 = best.candidate.n_params
             theta2, sd2 = pf.theta[n1:], decide.calibrated_sd(sc, cal)
+            fit_sd1, fit_sd2 = (None, None) if pf.sd is None else (pf.sd[:n1], pf.sd[n1:])  # the pair fit's own
             why = ("the pair fits worse held out (chi2 +{:.1f})".format(-gain) if not gain > 0
-                   else _too_small(oc, theta2, sd2, 1.0, vehicle, gain, _part(pf.sd, n1, None)))
+                   else _too_small(oc, theta2, sd2, 1.0, vehicle, gain, fit_sd2))
             # the rules for a first finding but its share, judged by the pair's sd (`_unsized`)
             if why:
                 _say(progress, f"{oc.effect} not paired: {why}")
@@ -288,7 +289,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 _say(progress, f"{oc.effect} not paired: the pair moves {best.candidate.effect} below what is worth naming")
                 failed.add(oc.effect)
                 continue  # and the first, moved by the pair, must still be worth naming
-            unsized = _unsized(best.candidate, sd1, pf.sd[:n1], vehicle) if pf.sd is not None else ""
+            unsized = _unsized(best.candidate, sd1, fit_sd1, vehicle) if fit_sd1 is not None else ""
             if unsized:  # the second sized beside the first, the first not beside it: the second
                 # explains what the first does, not the other way round (eval 7243). Not paired; the
                 # first displaced by it after the loop when no pair keeps the first sized and the
@@ -1065,8 +1066,7 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
 def _crb(s, cal) -> str:
     """The Cramer-Rao bound a testability verdict was decided on, in words: the best-determined
     parameter's calibrated sd against the smallest error worth finding."""
-    sd = decide.best_sd(s, cal)
-    rel = float(np.min(sd / np.maximum(s.reference, 1e-300))) if np.isfinite(sd).any() else float("inf")
+    rel = decide.relative_sd(decide.best_sd(s, cal), s.reference)
     return _crb_words(f"{rel:.2g}") if math.isfinite(rel) else "the recording carries no information on it"
 
 
@@ -1123,11 +1123,6 @@ def _with_bias(cm: CorrectedModel, bias) -> CorrectedModel:
     """`cm` with the IMU bias of the score `bias` as its sensor correction (spec 5)."""
     return dataclasses.replace(cm, correction=dataclasses.replace(
         cm.correction, gyro_bias=tuple(bias.theta[:3]), accel_bias=tuple(bias.theta[3:])))
-
-
-def _part(sd, a: int, b):
-    """sd[a:b] of a pair fit's sd, or None when the fit has none."""
-    return None if sd is None else sd[a:b]
 
 
 def _split_pair(pf: Fit, a: Fit, cb: Candidate, res0: np.ndarray):

@@ -448,7 +448,16 @@ def sd_in_worth(cand, sd, vehicle) -> float:
     sized = ref > 1e-9  # not a nominally zero term (reference_magnitude's floor: no relative size)
     if sd.shape != ref.shape or not sized.any():
         return 0.0
-    return float(np.min(np.nan_to_num(sd[sized], nan=np.inf) / ref[sized]))
+    return relative_sd(sd[sized], ref[sized])
+
+
+def relative_sd(sd, reference) -> float:
+    """The best-determined parameter's sd over its smallest error worth finding: min sd / reference
+    (a NaN sd determines nothing; inf when none is finite). The one measure behind `best_sd`'s
+    choice of direction, the untestable reason's words (core._crb) and `sd_in_worth`."""
+    ref = np.maximum(np.asarray(reference, float), 1e-300)
+    with np.errstate(over="ignore"):  # a huge sd over a tiny reference is inf, the right answer
+        return float(np.min(np.nan_to_num(np.asarray(sd, float), nan=np.inf) / ref))
 
 
 def within_noise(cand, theta, sd) -> bool:
@@ -489,9 +498,7 @@ def best_sd(score: Score, cal: Calibration) -> np.ndarray:
     sds = part_sds(score, cal)
     if sds is None:
         return calibrated_sd(score, cal)
-    rel = [float(np.nanmin(sd / np.maximum(np.asarray(q.reference, float), 1e-300)))
-           if np.isfinite(sd).any() else math.inf for sd, q in zip(sds, score.parts)]
-    return sds[int(np.argmin(rel))]
+    return sds[int(np.argmin([relative_sd(sd, q.reference) for sd, q in zip(sds, score.parts)]))]
 
 
 def testable(score: Score, cal: Calibration) -> bool:
