@@ -504,12 +504,14 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     masked = _masked_untestable(cands, skip, again, again_with, findings, cal, named | set(rejected) | {
         f.candidate.public for f, _ in small}, above_by)
     untestable = untestable + masked
-    # a first displaced by a second that leaves it unsized, while that second is named
-    listed = named | {u["effect"] for u in untestable}
+    # a first displaced by a second that leaves it unsized, while that second is a finding of the
+    # report (`findings`, not `named`: a report the estimator's restarts empty names nothing)
+    reported = {f["effect"] for f in findings}
+    listed = reported | {u["effect"] for u in untestable}
     untestable = untestable + [
         {"effect": c.public, "kind": c.kind, "with": oc.public,
          "reason": f"significant alone but not sized with {oc.public} in the model: {why}; the two are confounded here"}
-        for c, oc, why in confounded if oc.public in named and c.public not in listed]
+        for c, oc, why in confounded if oc.public in reported and c.public not in listed]
     masked_ids = {m["effect"] for m in masked}
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
