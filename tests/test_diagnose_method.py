@@ -20,7 +20,7 @@ from ground import prove
 from ground.cli import main
 from ground.diagnose import candidates, core, decide, estimate, locate, null, replay
 from ground.diagnose.candidates import Evaluator
-from ground.diagnose.report import write_json
+from ground.diagnose.report import no_finding_text, write_json
 from ground.recording import read_recording
 from hil.plant import Plant
 from onboard import model
@@ -1149,6 +1149,67 @@ def test_an_added_mass_unsized_beside_a_restoring_moment_is_not_named(tmp_path, 
         if f["kind"] == "misestimated" and "std" in f:
             sd = np.ravel(np.array(next(iter(f["std"].values())), float))
             assert len(f["std"]) == 1 and sd.shape == ref.shape and np.min(sd / ref) <= decide.SIZE_SD, f
+
+
+def test_a_fit_the_held_out_blocks_cannot_reach_is_not_testable_rather_than_rejected():
+    """decide.holdout_power by hand, and core._unconfirmable: a significant quadratic damping
+    whose fit fails the held-out gate is rejected when the held-out blocks could have shown it,
+    and *not testable* when even the exact training step would lower the held-out chi-square by
+    no more than the gate asks (eval 7648: S 68, 0.4 within reach of the held-out blocks)."""
+    qd = next(c for c in core.candidates_for(V) if c.effect == "quadratic_damping")
+    p = qd.n_params
+    gate = core.drop_gate(qd)
+    assert gate == pytest.approx(core.Z_GATE * math.sqrt(2.0 * p))
+    # one parameter by hand: training rows [1, 1] see y = [2, 2], so dtheta = 2; a held-out row
+    # of 0.5 would drop (0.5 * 2)^2 = 1
+    one = decide.Score("x", 1, 8.0, 0.0, np.zeros(1), np.ones(1),
+                       design=(np.ones((2, 1)), np.full((1, 1), 0.5), np.full(2, 2.0), np.zeros(1)))
+    assert decide.holdout_power(one) == pytest.approx(1.0)
+    assert decide.holdout_power(dataclasses.replace(one, design=None)) == math.inf  # the IMU bias
+
+    rng = np.random.default_rng(3)
+    J_tr = rng.normal(size=(400, p))
+    dth = np.full(p, 0.3)
+    y_tr = J_tr @ dth + rng.normal(size=400)
+    theta = np.asarray(qd.x0, float) * 3.0  # a correction well worth finding
+    sd = 0.05 * np.abs(decide.reference_magnitude(qd, V))
+
+    def judged(J_ho, drop):
+        score = decide.Score(qd.effect, p, 40.0, 0.0, theta, sd, design=(J_tr, J_ho, y_tr, np.zeros(len(J_ho))))
+        f = types.SimpleNamespace(delta_holdout=drop)
+        return core._unconfirmable(score, f, qd, theta, sd, V)
+
+    blind = np.zeros((150, p))
+    blind[:, 0] = 0.01 * rng.normal(size=150)  # the held-out blocks barely move on one axis
+    why = judged(blind, -3.9)
+    assert why.startswith("significant on the fitting blocks (S 40.0) but not testable held out"), why
+    assert f"under the {gate:.1f} a finding must show" in why
+    seen = rng.normal(size=(150, p))  # the held-out blocks move as the training ones do
+    assert decide.holdout_power(decide.Score("q", p, 0, 0, theta, sd, design=(J_tr, seen, y_tr, np.zeros(150)))) > 5 * gate
+    assert judged(seen, -3.9) == ""  # judged as usual: rejected, the held-out blocks could show it
+    assert judged(blind, 2 * gate) == ""  # passes the gate: judged as usual
+    # a correction too small to be worth finding stays negligible, whatever the held-out blocks hold
+    assert core._unconfirmable(decide.Score(qd.effect, p, 40.0, 0.0, theta, sd, design=(J_tr, blind, y_tr, np.zeros(150))),
+                               types.SimpleNamespace(delta_holdout=-1.0), qd, np.asarray(qd.x0, float), sd, V) == ""
+
+
+@pytest.mark.slow
+def test_a_quadratic_damping_the_held_out_blocks_miss_is_listed_not_testable(tmp_path):
+    """Eval 7648 (quadratic damping x3.8, joystick pilot, motion capture, 90 s; dev data now):
+    its one burst of heave falls in the fitting blocks, the score test finds the damping (S 68
+    against 3.5) and its fit moves nothing held out. The report lists it not testable, with the
+    reason, not negligible or rejected."""
+    row = prove.run_family_case("eval", 7648, tmp_path)
+    assert row.get("error") is None, row.get("error")
+    assert row["named"] == [] and row["testable"] is False, row
+    rep = json.loads(next(tmp_path.glob("*.json")).read_text())
+    entry = [u for u in rep["untestable"] if u["effect"] == "quadratic_damping"]
+    assert len(entry) == 1 and "not testable held out" in entry[0]["reason"], rep["untestable"]
+    assert "quadratic_damping" not in rep["rejected"] + [n["effect"] for n in rep["negligible"]], rep
+    cand = next(c for c in rep["candidates"] if c["effect"] == "quadratic_damping")
+    assert cand["statistic"] > cand["threshold"] and cand["testable"] is False, cand
+    assert entry[0]["significant"] is True
+    assert "quadratic_damping" in no_finding_text(rep) and "the held-out blocks cannot test" in no_finding_text(rep)
 
 
 def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_second_pass():

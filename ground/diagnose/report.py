@@ -43,11 +43,17 @@ def no_finding_text(rep: dict) -> str:
     if findings_withheld(rep):
         return "no finding named: the recording could not be tested against the nominal model (see the warnings)"
     rejected, weak = rep.get("rejected") or [], rep.get("negligible") or []
+    # significant, but the held-out blocks cannot test it (core._unconfirmable)
+    blind = [u["effect"] for u in rep.get("untestable") or [] if u.get("significant")]
+    blind_text = (f"{', '.join(blind)} passed the calibrated test but the held-out blocks cannot test "
+                  f"{'it' if len(blind) == 1 else 'them'} (see 'not testable')") if blind else ""
     if rejected:  # significant, but not shown to fit better
         line = (f"no finding named: {', '.join(rejected)} passed the calibrated test but "
                 f"{'was' if len(rejected) == 1 else 'were'} withdrawn, the held-out fit not shown to be better than "
                 "the nominal model's")
-        return line + ("; other candidates " + _negligible(weak) if weak else "")
+        return line + (f"; {blind_text}" if blind else "") + ("; other candidates " + _negligible(weak) if weak else "")
+    if blind:
+        return f"no finding named: {blind_text}" + ("; other candidates " + _negligible(weak) if weak else "")
     if weak:  # significant, but too small to name (core.py: MIN_EXPLAINED, correction size, one sd)
         return "no finding named: candidates " + _negligible(weak)
     if nothing_testable(rep):
