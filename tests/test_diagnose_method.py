@@ -1193,6 +1193,27 @@ def test_a_fit_the_held_out_blocks_cannot_reach_is_not_testable_rather_than_reje
                                types.SimpleNamespace(delta_holdout=-1.0), qd, np.asarray(qd.x0, float), sd, V) == ""
 
 
+def test_a_fit_that_passed_alone_but_was_refused_beside_the_first_is_listed_with_it():
+    """core._unpaired (a hostile review's find: a truncated 7243 had a restoring moment whose lone
+    fit lowered the held-out chi-square by 159 stand in no list of the report, its pair with the
+    wall effect named fitting worse held out): listed untestable with the first, with the pair's
+    reason; not when reported otherwise, not when the first is no longer the report's first."""
+    by = {c.effect: c for c in core.candidates_for(V)}
+    wall, rm, am = by["wall_proximity"], by["restoring_moment"], by["added_mass"]
+    fits = [types.SimpleNamespace(candidate=c, delta_holdout=d) for c, d in ((wall, 163.2), (rm, 159.0), (am, 40.0))]
+    why_not = {"restoring_moment": "the pair fits worse held out (chi2 +12.6)"}
+    out = core._unpaired(fits, fits[:1], wall, why_not, {"wall_proximity"}, set())
+    assert [u["effect"] for u in out] == ["restoring_moment", "added_mass"] and all(u["with"] == "wall_proximity" for u in out)
+    assert out[0]["reason"] == ("significant alone (its fit lowers the held-out chi-square by 159.0) but not beside "
+                                "wall_proximity: the pair fits worse held out (chi2 +12.6); the two are confounded here")
+    assert "another second's pair with wall_proximity fitted the held-out data better" in out[1]["reason"]
+    assert [u["effect"] for u in core._unpaired(fits, fits[:1], wall, why_not, {"wall_proximity"}, {"added_mass"})] == [
+        "restoring_moment"]  # already listed (rejected, negligible, untestable)
+    assert core._unpaired(fits, fits[1:2], wall, why_not, {"restoring_moment"}, set()) == []  # named alone after
+    assert core._unpaired(fits, fits[:1], wall, why_not, set(), set()) == []  # withdrawn: nothing to be tested with
+    assert core._unpaired(fits, [], None, {}, set(), set()) == []
+
+
 @pytest.mark.slow
 def test_a_quadratic_damping_the_held_out_blocks_miss_is_listed_not_testable(tmp_path):
     """Eval 7648 (quadratic damping x3.8, joystick pilot, motion capture, 90 s; dev data now):

@@ -255,6 +255,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # with); holding the Fit keeps its id from being reused by a Fit made after a rejected pair
     confounded = []  # (first displaced, the second that displaced it, why): listed untestable with it
     gone = set()  # the effects displaced (none comes back first)
+    why_not, paired_with = {}, None  # the last first's refused seconds: effect -> why, and that first
     while single:  # once more, the displacing second first, when a second displaces the first
         sd1 = decide.calibrated_sd(by_effect[single[0].candidate.effect], cal)
         best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, sd1, vehicle, progress)  # ranked by the ranking fits
@@ -268,6 +269,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         best_pair = None
         shared = []  # pairs refused by their share of the held-out drop alone (`_standout`)
         failed = set()  # seconds whose pair failed another rule (worse held out, too small, moves the first)
+        why_not, paired_with = {}, best.candidate  # every refused second's reason (report: `_unpaired`)
         _say(progress, f"scoring the candidates again with {best.candidate.effect} in the model")
         again = _second_pass(recs_w, leads, runs, best.model, cands, best.candidate.effect, split_fit, cal)
         again_with = best.candidate
@@ -288,9 +290,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             if why:
                 _say(progress, f"{oc.effect} not paired: {why}")
                 failed.add(oc.effect)
+                why_not[oc.effect] = why
                 continue
             if n1 and _too_small(best.candidate, pf.theta[:n1], sd1, best.explained, vehicle, best.delta_holdout):
-                _say(progress, f"{oc.effect} not paired: the pair moves {best.candidate.effect} below what is worth naming")
+                why_not[oc.effect] = f"the pair moves {best.candidate.public} below what is worth naming"
+                _say(progress, f"{oc.effect} not paired: {why_not[oc.effect]}")
                 failed.add(oc.effect)
                 continue  # and the first, moved by the pair, must still be worth naming
             unsized = _unsized(best.candidate, sd1, fit_sd1, vehicle) if fit_sd1 is not None else ""
@@ -301,7 +305,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                 solo = None if alone else next((f for f in single[1:] if f.candidate is oc), None)
                 if displaced is None and solo is not None and oc.effect not in gone:
                     displaced = (solo, oc, unsized)
-                _say(progress, f"{oc.effect} not paired: beside it, {best.candidate.effect}: {unsized}")
+                why_not[oc.effect] = f"beside it, {best.candidate.public}: {unsized}"
+                _say(progress, f"{oc.effect} not paired: {why_not[oc.effect]}")
                 failed.add(oc.effect)
                 continue
             thin = (_too_small(oc, theta2, sd2, pf.explained - best.explained, vehicle, gain)
@@ -309,6 +314,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                         f"{best.candidate.effect}'s -{best.delta_holdout:.1f}" if not gain > share * best.delta_holdout else ""))
             if thin:  # its share of the pair: of the held-out excess, and of the first's drop
                 _say(progress, f"{oc.effect} not paired on its share: {thin}")
+                why_not[oc.effect] = thin
                 shared.append((pf, oc, sc))
             elif best_pair is None or pf.delta_holdout > best_pair[0].delta_holdout:
                 best_pair = (pf, oc, sc)
@@ -510,7 +516,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # judged again with the first force finding in the model, while the report still makes it
     above_by = {s.effect: s for s in above}
     masked = _masked_untestable(cands, skip, again, again_with, findings, cal, named | set(rejected) | {
-        f.candidate.public for f, _ in small} | {c.public for c, _ in unconfirmed}, above_by)
+        f.candidate.public for f, _ in small} | {u["effect"] for u in untestable}, above_by)  # (listed once:
+    # a family partly untestable on the first pass keeps that entry, a hostile review's find, 7235)
     untestable = untestable + masked
     # a first displaced by a second that leaves it unsized, while that second is a finding of the
     # report (`findings`, not `named`: a report the estimator's restarts empty names nothing)
@@ -520,6 +527,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         {"effect": c.public, "kind": c.kind, "with": oc.public,
          "reason": f"significant alone but not sized with {oc.public} in the model: {why}; the two are confounded here"}
         for c, oc, why in confounded if oc.public in reported and c.public not in listed]
+    untestable = untestable + _unpaired(single, chosen, paired_with, why_not, reported,
+                                        {u["effect"] for u in untestable} | set(rejected) | {f.candidate.public for f, _ in small})
     masked_ids = {m["effect"] for m in masked}
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
@@ -1077,7 +1086,7 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
     undetermined so when this was written (5460 linear damping, Cramer-Rao sd 1.2-5.7x its
     reference, negligible instead since the tiled windows; 5395 quadratic damping; 5291 added
     mass; 5135 motor lag) and three were tested and missed (5611, 5115,
-    5145). A family `reported` (named, rejected, negligible) keeps that verdict; a family of
+    5145). A family `reported` (named, rejected, negligible, or already listed untestable) keeps that verdict; a family of
     several candidates (a thruster fault's units and its thrust curve) is listed only when none
     is testable. Other entries of the family (the first pass's partly testable parameters, the
     horizontal current's physics) stay: they say something else. A family `above` its threshold
@@ -1103,6 +1112,29 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
                       f"determined with {first.public} in the model: {_crb(again[a.effect], cal)}; the two are "
                       "confounded here")
         out.append({"effect": public, "kind": cs[0].kind, "with": first.public, "reason": reason})
+    return out
+
+
+def _unpaired(single: list, chosen: list, first, why_not: dict, reported: set, listed: set) -> list:
+    """The untestable entries, `"with"` the `first` force finding (a Candidate, the one the pairs
+    were tried with), of the fits that passed every rule alone (`single`) but are neither named
+    nor otherwise listed: significant alone, refused beside `first` (`why_not`: the pair's
+    rule that failed; none when another second's pair fitted better). A truncated log (a hostile
+    review's find, 7243's first 40 %) had a restoring moment lower the held-out chi-square by
+    159 alone, its pair with the wall effect named fitting worse held out, and it stood in no
+    list of the report. None unless `first` is still the report's first finding (`reported`)."""
+    if first is None or not chosen or chosen[0].candidate.effect != first.effect or first.public not in reported:
+        return []
+    out, seen = [], set(reported) | set(listed)
+    for f in single:
+        c = f.candidate
+        if c.public in seen:
+            continue
+        seen.add(c.public)
+        why = why_not.get(c.effect, f"another second's pair with {first.public} fitted the held-out data better")
+        out.append({"effect": c.public, "kind": c.kind, "with": first.public,
+                    "reason": f"significant alone (its fit lowers the held-out chi-square by {f.delta_holdout:.1f}) but "
+                              f"not beside {first.public}: {why}; the two are confounded here"})
     return out
 
 
