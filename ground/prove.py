@@ -774,11 +774,14 @@ def family_table(rows: list[dict]) -> str:
                       f"model ({', '.join(str(r.get('index', r['case'])) for r in masked)}), counted as misses above; "
                       f"without them: top-1 {rate(test, 'top1')}, top-2 {rate(test, 'top2')}"]
     unconfirmed = [r for r in ok if r["expect"] and not r.get("testable") and r.get("unconfirmed")]
-    if unconfirmed:  # left out above as untestable; the rate with them counted as misses
+    if unconfirmed:  # left out above (every row) as untestable; the rates with them counted as misses
         test = [r for r in ok if r["expect"] and (r.get("testable") or r.get("unconfirmed"))]
+        parts = [(name, [r for r in test if (r["sensors"] == "mocap") == mocap])
+                 for name, mocap in (("with motion capture", True), ("without", False))]
         lines += ["", f"{len(unconfirmed)} effect(s) significant on the fitting blocks that the report lists not testable "
                       f"held out ({', '.join(str(r.get('index', r['case'])) for r in unconfirmed)}), left out above; "
-                      f"counted as misses: top-1 {rate(test, 'top1')}, top-2 {rate(test, 'top2')}"]
+                      f"counted as misses: top-1 {rate(test, 'top1')}, top-2 {rate(test, 'top2')}; "
+                      + "; ".join(f"{name} top-1 {rate(sel, 'top1')}, top-2 {rate(sel, 'top2')}" for name, sel in parts)]
     # the controls' rate does not see these: a finding that is not there, named while the concealed
     # effect is one the recording cannot test
     blind = [dict(r, wrong=bool(set(r.get("named") or []) - set(r["expect"])))

@@ -157,7 +157,8 @@ def test_family_table_has_wilson_intervals_and_the_confusion_matrix():
     text = family_table(rows)
     assert "| all | 7 | 1/2 (50 %, 9-91) | 2/5 (40 %, 12-77) | 1/2 (50 %, 9-91) |" in text
     assert "1 effect(s) significant on the fitting blocks that the report lists not testable held out (10), left " \
-           "out above; counted as misses: top-1 1/3 (33 %, 6-79), top-2 1/3 (33 %, 6-79)" in text
+           "out above; counted as misses: top-1 1/3 (33 %, 6-79), top-2 1/3 (33 %, 6-79); with motion capture " \
+           "top-1 0/1 (0 %, 0-79), top-2 0/1 (0 %, 0-79); without top-1 1/2 (50 %, 9-91), top-2 1/2 (50 %, 9-91)" in text
 
 
 # A small stratified subset of the benchmark's development split, run in CI, chosen by a rule, not

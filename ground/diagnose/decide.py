@@ -242,20 +242,6 @@ def _regress(J_tr, J_ho, y_tr, y_ho):
     return max(S, 0.0), drop, dth, np.sqrt(np.maximum(np.diag(Ainv), 0.0))
 
 
-def holdout_power(score: Score) -> float:
-    """The held-out chi-square drop the training step would make were it exactly right:
-    ||J_ho dtheta||^2 (module doc), what the held-out samples can show of this candidate at
-    most, noise aside. Small when the motion that excites it falls in the training blocks (a
-    sweep pilot's heave, one burst of it in a 90 s flight: eval 7648, S 68 against 3.5 and
-    0.4 of it within reach of the held-out blocks). +inf without a residual design (the IMU bias,
-    tested on the smoother's bias states): no claim that it cannot be shown."""
-    if score.design is None:
-        return math.inf
-    J_tr, J_ho, y_tr, _ = score.design
-    _, _, dth, _ = _regress(J_tr, J_ho, y_tr, np.zeros(len(J_ho)))
-    return float(np.sum((J_ho @ dth) ** 2))
-
-
 def joint_gain(a: Score, b: Score) -> tuple[float, float]:
     """(training, held-out) gain of adding candidate b to candidate a: the nested score test
     S(a, b) - S(a) on the same weighted disturbance, and the held-out drop it adds."""
