@@ -255,7 +255,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # with); holding the Fit keeps its id from being reused by a Fit made after a rejected pair
     confounded = []  # (first displaced, the second that displaced it, why): listed untestable with it
     gone = set()  # the effects displaced (none comes back first)
-    why_not, paired_with = {}, None  # the last first's refused seconds: effect -> why, and that first
+    why_not = {}  # the refused seconds of the first they were tried with (again_with): effect -> why
     while single:  # once more, the displacing second first, when a second displaces the first
         sd1 = decide.calibrated_sd(by_effect[single[0].candidate.effect], cal)
         best = single[0] = _polish(ev_fit, single[0], split_fit, res0_fit, sd1, vehicle, progress)  # ranked by the ranking fits
@@ -269,7 +269,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         best_pair = None
         shared = []  # pairs refused by their share of the held-out drop alone (`_standout`)
         failed = set()  # seconds whose pair failed another rule (worse held out, too small, moves the first)
-        why_not, paired_with = {}, best.candidate  # every refused second's reason (report: `_unpaired`)
+        why_not = {}  # every refused second's reason (report: `_unpaired`)
         tried = set()  # the seconds fitted in a pair with it
         _say(progress, f"scoring the candidates again with {best.candidate.effect} in the model")
         again = _second_pass(recs_w, leads, runs, best.model, cands, best.candidate.effect, split_fit, cal)
@@ -483,15 +483,16 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # rejected pair (or the IMU bias) is not also listed rejected
     named = {f.candidate.public for f in chosen} | ({"imu_bias"} if bias_named else set())
     rejected = list(dict.fromkeys(e for e in (public.get(e, e) for e in rejected + worse) if e not in named))
-    # a second finding was tested on the second pass: not also listed partly untestable from the first
-    # (a family the held-out blocks cannot test at all: its one entry says so, not its parameters')
-    # by the report's name, once: not when a candidate of that name was judged otherwise (a thrust
-    # curve and a unit's fault are one name; an effect named in a pair, then withdrawn, was tested)
+    # out of the held-out blocks' reach (`_unconfirmable`): by the report's name, once, and not when a
+    # candidate of that name was judged otherwise (a thrust curve and a unit's fault are one name; an
+    # effect named in a pair, then withdrawn, was tested)
     judged = named | set(rejected) | {f.candidate.public for f, _ in small} | {f.candidate.public for f in single}
     blind = {}
     for c, why in unconfirmed:
         if c.public not in judged:
             blind.setdefault(c.public, (c, why))
+    # a second finding was tested on the second pass: not also listed partly untestable from the
+    # first; a family out of the held-out blocks' reach has its one entry
     untestable = untestable + [u for u in partly if u["effect"] not in named | set(blind)]
     untestable = untestable + [{"effect": c.public, "kind": c.kind, "significant": True, "reason": why}
                                for c, why in blind.values()]
@@ -537,9 +538,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         {"effect": c.public, "kind": c.kind, "with": oc.public,
          "reason": f"significant alone but not sized with {oc.public} in the model: {why}; the two are confounded here"}
         for c, oc, why in confounded if oc.public in reported and c.public not in listed]
-    untestable = untestable + _unpaired(single, chosen, paired_with, why_not, reported,
+    untestable = untestable + _unpaired(single, chosen, again_with, why_not, reported,
                                         {u["effect"] for u in untestable} | set(rejected) | {f.candidate.public for f, _ in small},
-                                        again if again_with is paired_with else None, cal)
+                                        again, cal)
     masked_ids = {m["effect"] for m in masked}
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
