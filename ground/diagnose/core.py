@@ -486,7 +486,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # out of the held-out blocks' reach (`_unconfirmable`): by the report's name, once, and not when a
     # candidate of that name was judged otherwise (a thrust curve and a unit's fault are one name; an
     # effect named in a pair, then withdrawn, was tested)
-    judged = named | set(rejected) | {f.candidate.public for f, _ in small} | {f.candidate.public for f in single}
+    verdict = named | set(rejected) | {f.candidate.public for f, _ in small}  # named, rejected or negligible
+    judged = verdict | {f.candidate.public for f in single}
     blind = {}
     for c, why in unconfirmed:
         if c.public not in judged:
@@ -526,8 +527,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         findings = []
     # judged again with the first force finding in the model, while the report still makes it
     above_by = {s.effect: s for s in above}
-    masked = _masked_untestable(cands, skip, again, again_with, findings, cal, named | set(rejected) | {
-        f.candidate.public for f, _ in small} | {u["effect"] for u in untestable}, above_by)  # (listed once:
+    masked = _masked_untestable(cands, skip, again, again_with, findings, cal,
+                                verdict | {u["effect"] for u in untestable}, above_by)  # (listed once:
     # a family partly untestable on the first pass keeps that entry, a hostile review's find, 7235)
     untestable = untestable + masked
     # a first displaced by a second that leaves it unsized, while that second is a finding of the
@@ -539,8 +540,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
          "reason": f"significant alone but not sized with {oc.public} in the model: {why}; the two are confounded here"}
         for c, oc, why in confounded if oc.public in reported and c.public not in listed]
     untestable = untestable + _unpaired(single, chosen, again_with, why_not, reported,
-                                        {u["effect"] for u in untestable} | set(rejected) | {f.candidate.public for f, _ in small},
-                                        again, cal)
+                                        verdict | {u["effect"] for u in untestable}, again, cal)
     masked_ids = {m["effect"] for m in masked}
     dist, dist_sd = est.disturbance, est.disturbance_std
     report = {
