@@ -10,7 +10,7 @@ from scipy.signal import savgol_filter
 
 from conftest import ARDUSUB, shared_file
 from ground.cli import main
-from ground.diagnose import candidates, locate, replay, sparse
+from ground.diagnose import candidates, core, locate, replay, sparse
 from ground.prove import Pilot, record_session, session_setpoints
 from ground.recording import read_recording
 from hil.plant import Plant
@@ -329,3 +329,17 @@ def test_a_log_in_short_fragments_is_a_verdict_not_an_error(quiet_session):
     assert rep["findings"] == []
     assert len(rep["untestable"]) == len(candidates.candidates_for(V))
     assert all("imu samples in this stretch" in u["reason"] for u in rep["untestable"])
+
+
+def test_a_vehicle_at_the_limit_of_a_parameter_is_a_verdict_not_a_traceback(quiet_session):
+    """A hostile run (helper-63): a heave quadratic damping of 99999, inside the vehicle file's
+    0-100000, left no room for decide.linear_scores' step of it; the candidate had no score and
+    core.diagnose ended in a KeyError. It is listed not testable, with the reason, and the rest of
+    the report is made."""
+    qd = np.array(V.get("hydro.quadratic_damping"), float)
+    qd[2] = 99999.0
+    rep = core.diagnose(quiet_session, V.with_values({"hydro.quadratic_damping": qd.tolist()}), draws=2).report
+    entry = [u for u in rep["untestable"] if u["effect"] == "quadratic_damping"]
+    assert len(entry) == 1 and entry[0]["reason"].startswith("the vehicle file leaves no room to vary it"), entry
+    assert "quadratic_damping" not in [f["effect"] for f in rep["findings"]] + rep["rejected"]
+    assert "quadratic_damping" not in [c["effect"] for c in rep["candidates"]]

@@ -203,10 +203,18 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     cal = decide.calibrate(null_scores, families, scores)
     scores = [decide.pick_part(s, cal) for s in scores]  # a family with parts: its calibrated part
     by_effect = {s.effect: s for s in scores}
+    # a candidate the vehicle file cannot take (decide.linear_scores: a step of it fails the file's
+    # checks, e.g. a damping at its limit) has no score: not testable, and out of the rest of the flow
+    # (a hostile run: quadratic damping 99999 of the 100000 allowed ended in a KeyError here)
+    unscored = [c for c in cands if c.effect not in by_effect]
+    cands = [c for c in cands if c.effect in by_effect]
     skip = {c.effect for c in cands if not decide.testable(by_effect[c.effect], cal)}
     untestable = [{"effect": c.public, "kind": c.kind,
                    "reason": untestable_reason(c.effect, by_effect[c.effect], cal, traj, vehicle, rec)}
-                  for c in cands if c.effect in skip]
+                  for c in cands if c.effect in skip] + [
+        {"effect": c.public, "kind": c.kind,
+         "reason": "the vehicle file leaves no room to vary it: a step of its parameters fails the file's checks"}
+        for c in unscored]
     # families tested by some parameters only (kept apart: a second finding may be named from them)
     partly = [u for c in cands if c.effect not in skip for u in [_partly_untestable(c, by_effect[c.effect], cal)]
               if u is not None]
