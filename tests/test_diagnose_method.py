@@ -1212,6 +1212,16 @@ def test_a_fit_that_passed_alone_but_was_refused_beside_the_first_is_listed_with
     assert "not beside wall_proximity: with wall_proximity in the model it scores S 3.2 against 4.5;" in out[1]["reason"]
     assert [u["effect"] for u in core._unpaired(fits, fits[:1], wall, why_not, {"wall_proximity"}, {"added_mass"})] == [
         "restoring_moment"]  # already listed (rejected, negligible, untestable)
+    # a first displaced by the one named (its pair left it unsized): that is its reason; one
+    # displaced by another candidate is not
+    unsized = "its sd is 15x the smallest error worth finding on its best-determined parameter: the recording cannot size it"
+    confounded = [(am, rm, unsized), (wall, am, "its sd is 3x")]
+    assert core._displaced(confounded, rm) == {"added_mass": "in the pair with it, " + unsized}
+    assert core._displaced(confounded, None) == {}
+    out = core._unpaired(fits[1:] + fits[:1], fits[1:2], rm, core._displaced(confounded, rm), {"restoring_moment"}, set())
+    assert [u["effect"] for u in out] == ["added_mass", "wall_proximity"], out
+    assert out[0]["reason"] == ("significant alone (its fit lowers the held-out chi-square by 40.0) but not beside "
+                                "restoring_moment: in the pair with it, " + unsized + "; the two are confounded here")
     assert core._unpaired(fits, fits[1:2], wall, why_not, {"restoring_moment"}, set()) == []  # named alone after
     assert core._unpaired(fits, fits[:1], wall, why_not, set(), set()) == []  # withdrawn: nothing to be tested with
     assert core._unpaired(fits, [], None, {}, set(), set()) == []

@@ -261,7 +261,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     again, again_with = None, None  # the second pass's scores (effect -> Score) and the candidate in its model
     second_test: dict = {}  # id(the second finding's Fit) -> (that Fit, its Score, the first effect it was tested
     # with); holding the Fit keeps its id from being reused by a Fit made after a rejected pair
-    confounded = []  # (first displaced, the second that displaced it, why): listed untestable with it
+    confounded = []  # (first displaced, the second that displaced it, why): its reason in `why_not`
     gone = set()  # the effects displaced (none comes back first)
     why_not = {}  # the refused seconds of the first they were tried with (again_with): effect -> why
     while single:  # once more, the displacing second first, when a second displaces the first
@@ -351,6 +351,7 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
             # alone after a rejected pair keep the first round's)
             second_test[id(chosen[1])] = (chosen[1], sc, best.candidate.public if again is not None else None)
         break
+    why_not.update(_displaced(confounded, again_with))
     # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
     bias_named = any(s.effect == "imu_bias" for s in significant) and (not chosen or bias.statistic / cal.threshold[
@@ -539,14 +540,9 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
                                 verdict | {u["effect"] for u in untestable}, above_by)  # (listed once:
     # a family partly untestable on the first pass keeps that entry, a hostile review's find, 7235)
     untestable = untestable + masked
-    # a first displaced by a second that leaves it unsized, while that second is a finding of the
+    # the fits that passed alone, a displaced first among them, listed with the first finding of the
     # report (`findings`, not `named`: a report the estimator's restarts empty names nothing)
     reported = {f["effect"] for f in findings}
-    listed = reported | {u["effect"] for u in untestable}
-    untestable = untestable + [
-        {"effect": c.public, "kind": c.kind, "with": oc.public,
-         "reason": f"significant alone but not sized with {oc.public} in the model: {why}; the two are confounded here"}
-        for c, oc, why in confounded if oc.public in reported and c.public not in listed]
     untestable = untestable + _unpaired(single, chosen, again_with, why_not, reported,
                                         verdict | {u["effect"] for u in untestable}, again, cal)
     masked_ids = {m["effect"] for m in masked}
@@ -1143,12 +1139,21 @@ def _masked_untestable(cands, skip: set, again: dict | None, first, findings: li
     return out
 
 
+def _displaced(confounded: list, first) -> dict:
+    """The reasons, by effect, of the firsts displaced by `first` (the candidate the pairs were
+    last tried with) that their pair left unsized: `confounded` holds (displaced, displacing,
+    why); for `_unpaired`, which lists them with it."""
+    return {c.effect: f"in the pair with it, {why}" for c, oc, why in confounded
+            if first is not None and oc.effect == first.effect}
+
+
 def _unpaired(single: list, chosen: list, first, why_not: dict, reported: set, listed: set, again=None,
               cal=None) -> list:
     """The untestable entries, `"with"` the `first` force finding (a Candidate, the one the pairs
     were tried with), of the fits that passed every rule alone (`single`) but are neither named
     nor otherwise `listed`: significant alone, not a finding beside `first`. The reason is the
-    pair's rule that failed, or the pair that fitted better (`why_not`), or, for one never
+    pair's rule that failed, or the pair that fitted better, or, for a first displaced by
+    `first`, its sd in their pair (`why_not`), or, for one never
     fitted in a pair, its score with `first` in the model (the second pass `again`, with `cal`).
     A truncated log (a hostile review's find, 7243's first 40 %) had a restoring moment lower
     the held-out chi-square by 159 alone, its pair with the wall effect named fitting worse held
