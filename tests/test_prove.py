@@ -139,7 +139,9 @@ def test_family_table_has_wilson_intervals_and_the_confusion_matrix():
                  "top1": False, "top2": False, "nrmse_before": 0.1, "nrmse_after": 0.05})
     text = family_table(rows)
     assert "| all | 4 | 1/2 (50 %, 9-91) | 2/2 (100 %, 34-100) | 1/2 (50 %, 9-91) |" in text
-    # the masked cases apart from the rest, each row counted like "all"
+    # the masked cases apart from the rest, each row counted like "all". Wilson 95 % by hand
+    # (z = 1.96, z^2 = 3.8416): 1/1 -> centre (1 + z^2/2) / (1 + z^2) = 0.603, half-width
+    # z (z/2) / (1 + z^2) = 0.397: 0.21-1; 0/1 -> 0-0.79; 1/2 -> 0.5 -+ 0.405: 0.09-0.91
     assert "| effects: one (and controls) | 3 | 1/2 (50 %, 9-91) | 1/1 (100 %, 21-100) | 1/1 (100 %, 21-100) |" in text
     assert "| effects: masked by a second | 1 | - | 1/1 (100 %, 21-100) | 0/1 (0 %, 0-79) |" in text
     assert "1 tested effect(s) the report lists untestable with its first force finding in the model (7), counted as " \
