@@ -1316,6 +1316,23 @@ def sweep_start(tmp_path_factory):
     return read_recording(path)
 
 
+def test_the_null_draws_on_threads_give_the_same_report(sweep_start, monkeypatch):
+    """core._each: the null draws run on threads (numba nogil, a locked actuator-run cache) and
+    the report is the one of the draws made one at a time, to the last digit (each draw has its
+    own random streams); the progress still counts every draw, in order."""
+    v = V.with_values({"body.volume": V.body.volume * 1.004})  # a finding, so the whole flow runs
+    reports, said = [], []
+    for threads in (1, 2):
+        monkeypatch.setattr(core, "DRAW_THREADS", threads)
+        lines = []
+        rep = core.diagnose(sweep_start, v, progress=lines.append, draws=4).report
+        rep.pop("elapsed_s")
+        reports.append(json.dumps(rep, sort_keys=True))
+        said.append([m.split(" (")[0] for m in lines if m.startswith("null draw")])
+    assert reports[0] == reports[1]
+    assert said[0] == said[1] == [f"null draw {b}/4" for b in range(1, 5)]
+
+
 def test_the_first_finding_is_fitted_on_and_kept_only_when_it_still_passes_the_rules(sweep_start):
     """core._polish on a real window: the reference vehicle flew it (azimuth transient gain 0.0126)
     and the nominal model has a tenth of that gain. Its fit from the nominal value with the fewest

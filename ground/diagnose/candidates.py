@@ -369,11 +369,29 @@ class Evaluator:
 
     def residual(self, cm: CorrectedModel) -> np.ndarray:
         traj = self.trajectory(cm.correction)
-        p = model.pack_params(cm.vehicle)
+        p = packed(cm.vehicle)
         act, cmd = self.drive(traj, p, cm)
         acc = replay.model_acceleration(traj, act, p, command=cmd)
         dyn = replay.acceleration_residual(traj, act, p, acc)
         return np.column_stack([dyn, traj.kinematic])
+
+
+_PACKED: dict = {}  # id -> (Vehicle, its read-only parameter vector)
+
+
+def packed(v: Vehicle) -> np.ndarray:
+    """`model.pack_params(v)`, read-only, remembered by identity (a Vehicle is frozen; held here,
+    its id cannot be reused): a candidate's residual on every window packed the same vehicle
+    again, 4 % of bench_diagnose (2026-12-02)."""
+    hit = _PACKED.get(id(v))
+    if hit is not None and hit[0] is v:
+        return hit[1]
+    p = model.pack_params(v)
+    p.setflags(write=False)
+    if len(_PACKED) >= 256:  # bounded: the candidates' steps of one fit are far fewer
+        _PACKED.clear()
+    _PACKED[id(v)] = (v, p)
+    return p
 
 
 class SegmentedEvaluator:

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -43,6 +45,7 @@ LEAD_MAX_S = 60.0
 IMPLAUSIBLE_WARN = 0.01  # more depth samples than this share voted out (estimate.depth_plausible): a warning
 MIN_DRAWS = 2  # fewer calibrated null draws than this: no finding (the thresholds would be guesses)
 NULL_DRAWS = 8  # recordings of the null hypothesis per diagnosis (decide.py calibration)
+DRAW_THREADS = 2  # ... made on this many threads at most (`_each`)
 Z_GATE = 2.5  # the data-driven `unknown` term (not calibrated by the null draws) must lower the
 # held-out chi-square by 2 Z_GATE of its sd, and pass the never-worse gate
 MIN_EXPLAINED = 0.04  # a fit removing less of the held-out excess than this is no finding, however
@@ -183,11 +186,14 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     sig = locate.sensor_noise(rec, floor=True)
     null_scores = []
     null_chi2 = []  # the nominal's held-out chi-square on each draw's windows (the `unknown` gate)
-    for b in range(draws):
+
+    def draw(b):
+        """(held-out chi-square, scores) of null draw b, or None when it lands on another grid.
+        One random stream per draw and window (by its place among the spans): a window that
+        moves or drops out leaves the other windows' draws as they were (one shared stream
+        reshuffled every later draw); so the draws are independent of one another and of the
+        order they run in (`_each`)."""
         t0 = time.perf_counter()
-        # one random stream per draw and window (by its place among the spans): a window that
-        # moves or drops out leaves the other windows' draws as they were (one shared stream
-        # reshuffled every later draw)
         recs_b = [null.simulate_window(r, e.traj0, e.actuators(e.traj0, p0, e.base), vehicle, sig,
                                        np.random.default_rng([seed, b, k]), start=_state_at(traj, e.traj0.time_s[0]))
                   for k, r, e in zip(span_of, recs_w, evs)]
@@ -195,11 +201,17 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         ev_b = SegmentedEvaluator(evs_b)
         res_b = ev_b.residual(ev_b.base)
         if len(res_b) != len(res0_fit):  # a draw on another grid cannot share the weights
+            return None
+        return (chi2(res_b, split_fit, split_fit.holdout)[0],
+                decide.linear_scores(ev_b, cands, split_fit, res_b, vehicle) + [
+                    decide.bias_score([e.traj0 for e in evs_b], vehicle)], time.perf_counter() - t0)
+
+    for b, out in enumerate(_each(draw, range(draws))):
+        if out is None:
             continue
-        null_chi2.append(chi2(res_b, split_fit, split_fit.holdout)[0])
-        null_scores.append(decide.linear_scores(ev_b, cands, split_fit, res_b, vehicle)
-                           + [decide.bias_score([e.traj0 for e in evs_b], vehicle)])
-        _say(progress, f"null draw {b + 1}/{draws} ({time.perf_counter() - t0:.1f} s)")
+        null_chi2.append(out[0])
+        null_scores.append(out[1])
+        _say(progress, f"null draw {b + 1}/{draws} ({out[2]:.1f} s)")
     cal = decide.calibrate(null_scores, families, scores)
     scores = [decide.pick_part(s, cal) for s in scores]  # a family with parts: its calibrated part
     by_effect = {s.effect: s for s in scores}
@@ -614,6 +626,21 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     return Diagnosis(report, traj, res0, res1, windows, fits, shots, mdiag)
 
 
+def _each(fn, items):
+    """fn(x) for x in items, yielded in order as each is done, on up to DRAW_THREADS threads: the null draws are
+    independent (their own random streams) and their compiled parts (the smoother, the plant,
+    the model's accelerations: numba, nogil) run beside one another; the shared actuator runs
+    (replay.ActuatorRuns) take a lock. Same results as one at a time (tests:
+    test_the_null_draws_on_threads_give_the_same_report)."""
+    n = min(DRAW_THREADS, os.cpu_count() or 1)
+    items = list(items)
+    if n <= 1 or len(items) <= 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(n) as pool:
+        yield from pool.map(fn, items)
+
+
 def _polish(ev, f: Fit, split, res0, sd, vehicle: Vehicle, progress) -> Fit:
     """The first finding's fit run on from where the ranking fit stopped (`fit` caps least
     squares at a few evaluations: enough to rank, and the trust region starts no wider than the
@@ -1004,6 +1031,7 @@ def _lead_in(rec, traj, window, vehicle) -> replay.LeadIn:
     t_lead = t_w[0] - dt * np.arange(int(round(lead_seconds(vehicle) / dt)), 0, -1)
     t_lead = t_lead[t_lead >= rec.servo.time_s[0]]
     cmd = replay.held_commands(rec, vehicle, t_lead) if len(t_lead) else np.zeros((0, 3 * vehicle.n_units))
+    cmd.setflags(write=False)  # (ActuatorRuns hashes it once)
     return replay.LeadIn(cmd, None)
 
 

@@ -42,7 +42,6 @@ sd (this one, not below its fit's own) is above SIZE_SD of its reference on ever
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -121,9 +120,11 @@ def rounding_floor(res0) -> np.ndarray:
     a[~np.isfinite(a)] = np.nan
     if not len(a):
         return np.zeros(a.shape[1:])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN channel: no floor
-        return ROUNDING * np.nan_to_num(np.nanpercentile(a, 99.0, axis=0), nan=0.0)
+    out = np.zeros(a.shape[1:])  # an all-NaN channel: no floor (left out of the percentile: numpy
+    ok = np.isfinite(a).any(axis=0)  # warns on it, and catch_warnings is not thread-safe: core._each)
+    if ok.any():
+        out[ok] = ROUNDING * np.nanpercentile(a[:, ok], 99.0, axis=0)
+    return out
 
 
 def _moved(res, res0, floor) -> np.ndarray:

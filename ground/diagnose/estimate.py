@@ -288,7 +288,7 @@ def _scalar_update(x, P, H, z_minus_h, r, is_angle, gate):
     return 0.5 * (z2 + math.log(2.0 * math.pi * s)), 1, z2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # (the null draws run on threads: core._each)
 def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, depth_ok, att, att_ok,
             mocap, mocap_ok, sig, surf, reset, plausible, settle_from, p_reset, store, xs_f, Ps_f, xs_p, Ps_p,
             Fs, nll, nsc, inno_ss, inno_n, since, k0):
@@ -457,7 +457,7 @@ def _filter(x0, P0, act, act_next, cmd, p, minv, h, qdiag, imu, imu_ok, depth, d
     return x, P, outliers, resets
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # (the null draws run on threads: core._each)
 def _rts(xs_f, Ps_f, xs_p, Ps_p, Fs, x_next, P_next, xs, stds):
     """Rauch-Tung-Striebel backward pass over one chunk, from the smoothed state after its end.
 

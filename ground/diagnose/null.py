@@ -24,7 +24,7 @@ from onboard import model
 from onboard.jit import MODEL_SOURCE, key_caches_on
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # (the null draws run on threads: core._each)
 def _simulate(x0, command, p, dt, substeps, out):
     """RK4 from x0 under held commands; out[k] = [pos(3), quat(4), gyro(3), specific force(3)]."""
     n = command.shape[0]
