@@ -95,6 +95,17 @@ def test_actuator_runs_are_shared_by_inputs_and_bounded():
         small.get(c, 0.01, p, 4)
         assert small._bytes <= 2 * a.nbytes
         assert small.get(cmd, 0.01, p, 4) is first  # the one in use stays (least recently used goes)
+    frozen = cmd.copy()  # a trajectory's commands: read-only, hashed once (by a weak reference)
+    frozen.setflags(write=False)
+    assert runs.get(frozen, 0.01, p, 4) is a and runs.get(frozen, 0.01, p, 4) is a
+    ref = runs._digests[id(frozen)][0]
+    assert ref() is frozen
+    del frozen
+    assert ref() is None  # the memo holds no array: it is outside the byte bound
+    thawed = cmd.copy()  # a writable array is hashed each time: a change is seen
+    assert runs.get(thawed, 0.01, p, 4) is a
+    thawed[200, 0] += 1.0
+    assert runs.get(thawed, 0.01, p, 4) is not a
 
 
 def test_actuator_param_indices_cover_everything_the_actuators_read():

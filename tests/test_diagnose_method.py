@@ -1321,6 +1321,7 @@ def test_the_null_draws_on_threads_give_the_same_report(sweep_start, monkeypatch
     the report is the one of the draws made one at a time, to the last digit (each draw has its
     own random streams); the progress still counts every draw, in order."""
     v = V.with_values({"body.volume": V.body.volume * 1.004})  # a finding, so the whole flow runs
+    monkeypatch.setattr(core, "cores", lambda: 2)  # two threads however many cores run the test
     reports, said = [], []
     for threads in (1, 2):
         monkeypatch.setattr(core, "DRAW_THREADS", threads)
@@ -1331,6 +1332,20 @@ def test_the_null_draws_on_threads_give_the_same_report(sweep_start, monkeypatch
         said.append([m.split(" (")[0] for m in lines if m.startswith("null draw")])
     assert reports[0] == reports[1]
     assert said[0] == said[1] == [f"null draw {b}/4" for b in range(1, 5)]
+
+
+def test_the_draw_threads_keep_the_callers_floating_point_handling(monkeypatch):
+    """core._each: np.errstate is a context variable a new thread does not inherit; the CLI's
+    errstate (and a caller's 'raise') must hold in the draws as in the caller (a review's find:
+    the draws printed overflow warnings the CLI silences)."""
+    monkeypatch.setattr(core, "cores", lambda: 2)
+    big = lambda x: np.float64(1e308) * x  # noqa: E731
+    with np.errstate(over="raise"):
+        with pytest.raises(FloatingPointError):
+            list(core._each(big, [1.0, 10.0]))
+    with np.errstate(over="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert list(core._each(big, [1.0, 10.0])) == [1e308, math.inf]
 
 
 def test_the_first_finding_is_fitted_on_and_kept_only_when_it_still_passes_the_rules(sweep_start):

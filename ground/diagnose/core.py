@@ -632,13 +632,31 @@ def _each(fn, items):
     the model's accelerations: numba, nogil) run beside one another; the shared actuator runs
     (replay.ActuatorRuns) take a lock. Same results as one at a time (tests:
     test_the_null_draws_on_threads_give_the_same_report)."""
-    n = min(DRAW_THREADS, os.cpu_count() or 1)
+    n = min(DRAW_THREADS, cores())
     items = list(items)
     if n <= 1 or len(items) <= 1:
         yield from map(fn, items)
         return
-    with ThreadPoolExecutor(n) as pool:
-        yield from pool.map(fn, items)
+    err = np.geterr()  # the caller's floating-point error handling (np.errstate, a context
+    # variable that a new thread does not inherit: the CLI's errstate had stopped at the threads)
+
+    def run(x):
+        with np.errstate(**err):
+            return fn(x)
+
+    pool = ThreadPoolExecutor(n)
+    try:
+        yield from pool.map(run, items)
+    finally:  # an error or an interrupt: the draws not yet begun are not begun
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity, not the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
 
 
 def _polish(ev, f: Fit, split, res0, sd, vehicle: Vehicle, progress) -> Fit:

@@ -27,6 +27,7 @@ import functools
 import hashlib
 import math
 import threading
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -471,22 +472,24 @@ class ActuatorRuns:
         self.max_bytes = max_bytes
         self._runs: dict = {}
         self._bytes = 0
-        self._digests: dict = {}  # id -> (read-only array, its digest): a window's commands hashed once
+        self._digests: dict = {}  # id -> (weak reference to a read-only array, its digest): hashed once
         self._lock = threading.Lock()  # the null draws run on threads (core._each)
 
     def _digest(self, a: np.ndarray) -> bytes:
-        """blake2b of `a`'s values; remembered for a read-only array that owns its data (it cannot
-        change; held here, its id cannot be reused). Hashing the same commands on every call was
-        5 % of bench_diagnose (29 000 updates, 2026-12-02)."""
+        """blake2b of `a`'s values; remembered for a read-only array that owns its data (the
+        trajectories' and lead-ins' commands, frozen where they are made and never thawed), by a
+        weak reference: the memo holds no array (it is outside the byte bound) and an id reused
+        after one is gone finds a dead reference, not a hit. Hashing the same commands on every
+        call was 5 % of bench_diagnose (29 000 updates, 2026-12-02)."""
         frozen = not a.flags.writeable and a.base is None
         hit = self._digests.get(id(a)) if frozen else None
-        if hit is not None and hit[0] is a:
+        if hit is not None and hit[0]() is a:
             return hit[1]
         d = hashlib.blake2b(np.ascontiguousarray(a, float).tobytes(), digest_size=16).digest()
         if frozen:
             if len(self._digests) >= 4096:  # bounded: windows, their draws and lead-ins are far fewer
                 self._digests.clear()
-            self._digests[id(a)] = (a, d)
+            self._digests[id(a)] = (weakref.ref(a), d)
         return d
 
     def get(self, command: np.ndarray, dt: float, p: np.ndarray, n_units: int, lead=None) -> np.ndarray:
