@@ -1251,11 +1251,12 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     damping 42.7x, under a restoring moment whose fit dropped 88,000): the inflow, refused by
     its share of the pair alone, is paired when it is SECOND_STANDOUT x its threshold and
     SECOND_MARGIN x the next candidate (those left out of `public`, not testable, do not count);
-    not when another candidate tops it, not when the top is not among the refused pairs
-    or is a local effect, not under SECOND_STANDOUT x its threshold, not when a ratio is not
-    finite; a thrust curve and a thruster fault are one name; a local effect whose own pair
-    failed another rule (dev 6159's wall effect, within one sd) is no competitor, one not fitted
-    in a pair still is; 6336's added mass (4.4x its threshold, 2.2x the next) is paired."""
+    not when another candidate tops it, not when the top is not among the refused pairs, not
+    under SECOND_STANDOUT x its threshold, not when a ratio is not finite; a thrust curve and a
+    thruster fault are one name; a local effect whose own pair failed another rule (dev 6159's
+    wall effect, within one sd) is no competitor, one not fitted in a pair still is, and one whose
+    pair was refused by its share alone is picked through that pair (dev 8265's wall effect, 38.9x
+    its threshold and 2.9x the next); 6336's added mass (4.4x its threshold, 2.2x the next) is paired."""
     ratios = {"thrust_inflow": 108.4, "linear_damping": 42.7, "quadratic_damping": 42.4, "wall_proximity": 300.0,
               "thrust_curve": 30.0, "thruster_fault": 40.0}
     cal = types.SimpleNamespace(threshold={e: 14.0 + i for i, e in enumerate(ratios)})
@@ -1266,11 +1267,12 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     public = {e: e for e in ratios if e != "wall_proximity"} | {"thrust_curve": "thruster_fault"}
     standout = lambda sh=shared, pub=public, ag=again, fl=(): core._standout(sh, set(fl), ag, cal, pub, None)  # noqa: E731
     assert standout() == shared[0]
-    assert standout(pub=public | {"wall_proximity": "wall_proximity"}) is None  # the wall effect tops it, never picked
     wall = public | {"wall_proximity": "wall_proximity"}
-    assert standout(sh=shared[:2], pub=wall) is None  # not fitted in a pair: still the top
+    assert standout(pub=wall) == shared[2]  # the wall effect tops it (300x, 2.8x the inflow): its own pair
+    assert standout(pub=wall, ag=again | {"wall_proximity": score("wall_proximity", 200.0)}) is None  # 1.8x: no margin
+    assert standout(sh=shared[:2], pub=wall) is None  # not fitted in a pair: still the top, never picked
     assert standout(sh=shared[:2], pub=wall, fl={"wall_proximity"}) == shared[0]  # its pair failed: no competitor
-    assert standout(pub=wall, fl={"linear_damping"}) is None  # only a local effect's failure counts
+    assert standout(sh=shared[:2], pub=wall, fl={"linear_damping"}) is None  # only a local effect's failure counts
     assert standout(sh=shared[1:]) is None
     assert core.SECOND_MARGIN * 42.7 < 108.4  # the inflow stands out by its margin alone
     assert standout(ag=again | {"linear_damping": score("linear_damping", 108.4 / core.SECOND_MARGIN + 0.1)}) is None

@@ -799,11 +799,22 @@ def _standout(shared: list, failed: set, again: dict, cal, public: dict, progres
     a first finding's imperfect fit spreads into many families at once, so the margin. Ranked
     by reported name (`public`: effect -> name of the testable candidates that are not the
     first's namesakes; a thrust curve and a thruster fault are one name, the larger ratio); a
-    ratio that is not finite judges nothing (None); the local effects are never picked (their
-    score counts a step their parameter bounds may not reach: the README's known gaps) and count
-    as the next unless their own pair was fitted and `failed` another rule than the share (within
+    ratio that is not finite judges nothing (None); a local effect (wall, surface) is picked only
+    through its own pair in `shared` (fitted within its parameter bounds and passing every rule
+    but its share: its score alone counts a step those bounds may not reach, the README's known
+    gaps) and counts as the next unless its pair `failed` another rule than the share (within
     one sd, worse held out: the fit shows that step was not there; a local effect not fitted in a
     pair still counts).
+
+    Local effects picked through their pair (2026-12-02): until then never picked. Dev 8265 (a
+    wall effect under an azimuth transient, motion capture): the wall's pair fitted k_wall 0.90
+    within its bounds and added chi2 -8791 held out (1.7 % of the transient's -525,953, so
+    refused by its share), the wall 38.9x its threshold and 2.9x the next; it was named alone as
+    the transient. On 92 dev cases of blocks 7732-8331 (66 masked, 20 with one effect, 6
+    controls) and 44 more with one lag, transient, delay or inflow (7452-7908), scored offline
+    from their logged second passes, it is the only verdict the change moves; but 8265 is the
+    only one of the 136 where a local effect's pair was refused by its share at all (thin
+    evidence against false seconds: the next fresh block measures it).
 
     Dev evidence (the 69 masked cases of eval blocks 3832-4431 and 40 of their single-effect cases,
     re-diagnosed as development data on 2026-11-27): five masked seconds scored 17-720x their
@@ -850,7 +861,7 @@ def _standout(shared: list, failed: set, again: dict, cal, public: dict, progres
         return None
     top_r, top_e = ranked[0]
     next_r = ranked[1][0] if len(ranked) > 1 else 0.0
-    pick = next((p for p in shared if p[1].effect == top_e and top_e not in LOCAL_EFFECTS), None)
+    pick = next((p for p in shared if p[1].effect == top_e), None)
     if pick is None or top_r < SECOND_STANDOUT or top_r < SECOND_MARGIN * max(next_r, 1.0):
         return None
     _say(progress, f"{top_e} paired on its second-pass test alone: S {top_r:.0f}x its threshold, "
