@@ -627,11 +627,11 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
 
 
 def _each(fn, items):
-    """fn(x) for x in items, yielded in order as each is done, on up to DRAW_THREADS threads: the null draws are
-    independent (their own random streams) and their compiled parts (the smoother, the plant,
-    the model's accelerations: numba, nogil) run beside one another; the shared actuator runs
-    (replay.ActuatorRuns) take a lock. Same results as one at a time (tests:
-    test_the_null_draws_on_threads_give_the_same_report)."""
+    """fn(x) for x in items, yielded in order as each is done, on up to DRAW_THREADS threads (as
+    many as this process has cores): the null draws are independent (their own random streams)
+    and their compiled parts (the smoother, the plant, the model's accelerations: numba, nogil)
+    run beside one another; the shared actuator runs (replay.ActuatorRuns) take a lock. Same
+    results as one at a time (test_the_null_draws_on_threads_give_the_same_report)."""
     n = min(DRAW_THREADS, cores())
     items = list(items)
     if n <= 1 or len(items) <= 1:
@@ -809,8 +809,8 @@ def _standout(shared: list, failed: set, again: dict, cal, public: dict, progres
     Local effects picked through their pair (2026-12-02): until then never picked. Dev 8265 (a
     wall effect under an azimuth transient, motion capture): the wall's pair fitted k_wall 0.90
     within its bounds and added chi2 -8791 held out (1.7 % of the transient's -525,953, so
-    refused by its share), the wall 38.9x its threshold and 2.9x the next; it was named alone as
-    the transient. On 92 dev cases of blocks 7732-8331 (66 masked, 20 with one effect, 6
+    refused by its share), the wall 40x its threshold and 3.0x the next; the transient was named
+    alone, now the wall second (k_wall 0.90, truth 0.897). On 92 dev cases of blocks 7732-8331 (66 masked, 20 with one effect, 6
     controls) and 44 more with one lag, transient, delay or inflow (7452-7908), scored offline
     from their logged second passes, it is the only verdict the change moves; but 8265 is the
     only one of the 136 where a local effect's pair was refused by its share at all (thin
