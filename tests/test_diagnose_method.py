@@ -1255,8 +1255,8 @@ def test_a_second_refused_by_its_share_is_paired_when_it_stands_out_on_the_secon
     under SECOND_STANDOUT x its threshold, not when a ratio is not finite; a thrust curve and a
     thruster fault are one name; a local effect whose own pair failed another rule (dev 6159's
     wall effect, within one sd) is no competitor, one not fitted in a pair still is, and one whose
-    pair was refused by its share alone is picked through that pair (dev 8265's wall effect, 38.9x
-    its threshold and 2.9x the next); 6336's added mass (4.4x its threshold, 2.2x the next) is paired."""
+    pair was refused by its share alone is picked through that pair (dev 8265's wall effect, 40x
+    its threshold and 3.0x the next); 6336's added mass (4.4x its threshold, 2.2x the next) is paired."""
     ratios = {"thrust_inflow": 108.4, "linear_damping": 42.7, "quadratic_damping": 42.4, "wall_proximity": 300.0,
               "thrust_curve": 30.0, "thruster_fault": 40.0}
     cal = types.SimpleNamespace(threshold={e: 14.0 + i for i, e in enumerate(ratios)})
