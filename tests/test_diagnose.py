@@ -98,7 +98,7 @@ def test_actuator_runs_are_shared_by_inputs_and_bounded():
     frozen = cmd.copy()  # a trajectory's commands: read-only, hashed once (by a weak reference)
     frozen.setflags(write=False)
     assert runs.get(frozen, 0.01, p, 4) is a and runs.get(frozen, 0.01, p, 4) is a
-    ref = runs._digests[id(frozen)][0]
+    ref = runs._digests._d[id(frozen)][0]
     assert ref() is frozen
     del frozen
     assert ref() is None  # the memo holds no array: it is outside the byte bound
@@ -106,6 +106,25 @@ def test_actuator_runs_are_shared_by_inputs_and_bounded():
     assert runs.get(thawed, 0.01, p, 4) is a
     thawed[200, 0] += 1.0
     assert runs.get(thawed, 0.01, p, 4) is not a
+
+
+def test_packed_vehicles_are_remembered_without_being_kept():
+    """candidates.packed: the parameter vector of model.pack_params, remembered by the vehicle's
+    identity (replay.IdentityMemo); a caller's change to the returned array is its own, and the
+    memo keeps no vehicle alive (a weak reference)."""
+    import gc
+
+    from ground.diagnose import candidates
+
+    v = V.with_values({"body.volume": V.body.volume * 1.01})
+    p = candidates.packed(v)
+    np.testing.assert_array_equal(p, model.pack_params(v))
+    p[:] = 0.0
+    np.testing.assert_array_equal(candidates.packed(v), model.pack_params(v))
+    ref = candidates._PACKED._d[id(v)][0]
+    del v
+    gc.collect()
+    assert ref() is None
 
 
 def test_actuator_param_indices_cover_everything_the_actuators_read():

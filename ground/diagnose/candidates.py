@@ -376,22 +376,15 @@ class Evaluator:
         return np.column_stack([dyn, traj.kinematic])
 
 
-_PACKED: dict = {}  # id -> (Vehicle, its parameter vector)
+_PACKED = replay.IdentityMemo(256)  # the candidates' steps of one fit are far fewer
 
 
 def packed(v: Vehicle) -> np.ndarray:
-    """`model.pack_params(v)`, remembered by identity (a Vehicle is frozen; held here, its id
-    cannot be reused): a candidate's residual on every window packed the same vehicle again, 4 %
-    of bench_diagnose (2026-12-02). A copy each time (microseconds): a caller cannot change the
-    one remembered, and the compiled code sees the writable array type it was compiled for."""
-    hit = _PACKED.get(id(v))
-    if hit is not None and hit[0] is v:
-        return hit[1].copy()
-    p = model.pack_params(v)
-    if len(_PACKED) >= 256:  # bounded: the candidates' steps of one fit are far fewer
-        _PACKED.clear()
-    _PACKED[id(v)] = (v, p.copy())
-    return p
+    """`model.pack_params(v)`, remembered by identity (a Vehicle is frozen; `replay.IdentityMemo`):
+    a candidate's residual on every window packed the same vehicle again, 4 % of bench_diagnose
+    (2026-12-02). A copy each time (microseconds): a caller cannot change the one remembered, and
+    the compiled code sees the writable array type it was compiled for."""
+    return _PACKED.get(v, model.pack_params).copy()
 
 
 class SegmentedEvaluator:

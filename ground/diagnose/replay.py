@@ -460,6 +460,28 @@ def actuator_run_lead(command: np.ndarray, dt: float, p: np.ndarray, n_units: in
     return actuator_run_commands(np.concatenate([lead.command, command]), dt, p, n_units, substeps)[m:]
 
 
+class IdentityMemo:
+    """f(obj) remembered by obj's identity, through a weak reference: the memo keeps nothing
+    alive, and an id reused after its object is gone finds a dead reference, not a hit. Only for
+    objects that cannot change (a frozen Vehicle, an array frozen where it is made). Bounded:
+    cleared when `limit` entries are held. Thread-safe enough for the null draws' threads (each
+    dict operation is atomic; a race costs one recomputation)."""
+
+    def __init__(self, limit: int):
+        self.limit = limit
+        self._d: dict = {}  # id -> (weak reference, value)
+
+    def get(self, obj, compute):
+        hit = self._d.get(id(obj))
+        if hit is not None and hit[0]() is obj:
+            return hit[1]
+        value = compute(obj)
+        if len(self._d) >= self.limit:
+            self._d.clear()
+        self._d[id(obj)] = (weakref.ref(obj), value)
+        return value
+
+
 class ActuatorRuns:
     """`actuator_run_lead`, remembered by what it depends on: the commands (lead-in included),
     the grid spacing and the actuator parameters (`model.actuator_param_indices`). Windows of one
@@ -472,25 +494,16 @@ class ActuatorRuns:
         self.max_bytes = max_bytes
         self._runs: dict = {}
         self._bytes = 0
-        self._digests: dict = {}  # id -> (weak reference to a read-only array, its digest): hashed once
+        self._digests = IdentityMemo(4096)  # read-only commands hashed once (windows, draws, lead-ins: far fewer)
         self._lock = threading.Lock()  # the null draws run on threads (core._each)
 
     def _digest(self, a: np.ndarray) -> bytes:
-        """blake2b of `a`'s values; remembered for a read-only array that owns its data (the
-        trajectories' and lead-ins' commands, frozen where they are made and never thawed), by a
-        weak reference: the memo holds no array (it is outside the byte bound) and an id reused
-        after one is gone finds a dead reference, not a hit. Hashing the same commands on every
-        call was 5 % of bench_diagnose (29 000 updates, 2026-12-02)."""
-        frozen = not a.flags.writeable and a.base is None
-        hit = self._digests.get(id(a)) if frozen else None
-        if hit is not None and hit[0]() is a:
-            return hit[1]
-        d = hashlib.blake2b(np.ascontiguousarray(a, float).tobytes(), digest_size=16).digest()
-        if frozen:
-            if len(self._digests) >= 4096:  # bounded: windows, their draws and lead-ins are far fewer
-                self._digests.clear()
-            self._digests[id(a)] = (weakref.ref(a), d)
-        return d
+        """blake2b of `a`'s values; remembered (`IdentityMemo`) for a read-only array that owns its
+        data (the trajectories' and lead-ins' commands, frozen where they are made and never
+        thawed). Hashing the same commands on every call was 5 % of bench_diagnose (29 000
+        updates, 2026-12-02)."""
+        digest = lambda x: hashlib.blake2b(np.ascontiguousarray(x, float).tobytes(), digest_size=16).digest()  # noqa: E731
+        return self._digests.get(a, digest) if not a.flags.writeable and a.base is None else digest(a)
 
     def get(self, command: np.ndarray, dt: float, p: np.ndarray, n_units: int, lead=None) -> np.ndarray:
         h = hashlib.blake2b(digest_size=16)
