@@ -1348,6 +1348,10 @@ def test_the_draw_threads_keep_the_callers_floating_point_handling(monkeypatch):
     with np.errstate(over="ignore"), warnings.catch_warnings():
         warnings.simplefilter("error")
         assert list(core._each(big, [1.0, 10.0])) == [1e308, math.inf]
+    seen = []  # errstate's 'call' mode: the caller's handler, not none
+    with np.errstate(over="call", call=lambda kind, flag: seen.append(kind)):
+        assert list(core._each(big, [10.0, 10.0])) == [math.inf, math.inf]
+    assert seen == ["overflow", "overflow"]
 
 
 def test_the_first_finding_is_fitted_on_and_kept_only_when_it_still_passes_the_rules(sweep_start):

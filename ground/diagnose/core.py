@@ -637,11 +637,12 @@ def _each(fn, items):
     if n <= 1 or len(items) <= 1:
         yield from map(fn, items)
         return
-    err = np.geterr()  # the caller's floating-point error handling (np.errstate, a context
-    # variable that a new thread does not inherit: the CLI's errstate had stopped at the threads)
+    err, call = np.geterr(), np.geterrcall()  # the caller's floating-point error handling
+    # (np.errstate, a context variable that a new thread does not inherit: the CLI's errstate had
+    # stopped at the threads), its handler too when it has one (a review's find)
 
     def run(x):
-        with np.errstate(**err):
+        with np.errstate(call=call, **err):
             return fn(x)
 
     pool = ThreadPoolExecutor(n)
@@ -1060,7 +1061,7 @@ def _lead_in(rec, traj, window, vehicle) -> replay.LeadIn:
     t_lead = t_w[0] - dt * np.arange(int(round(lead_seconds(vehicle) / dt)), 0, -1)
     t_lead = t_lead[t_lead >= rec.servo.time_s[0]]
     cmd = replay.held_commands(rec, vehicle, t_lead) if len(t_lead) else np.zeros((0, 3 * vehicle.n_units))
-    cmd.setflags(write=False)  # (ActuatorRuns hashes it once)
+    cmd.setflags(write=False)  # for good: ActuatorRuns hashes it once and keys its runs by it
     return replay.LeadIn(cmd, None)
 
 
