@@ -373,3 +373,66 @@ def test_a_vehicle_at_the_limit_of_a_parameter_is_a_verdict_not_a_traceback(quie
     assert len(entry) == 1 and entry[0]["reason"].startswith("the vehicle file leaves no room to vary it"), entry
     assert "quadratic_damping" not in [f["effect"] for f in rep["findings"]] + rep["rejected"]
     assert "quadratic_damping" not in [c["effect"] for c in rep["candidates"]]
+
+
+def test_a_coefficient_the_file_leaves_out_is_sized_by_its_typical_magnitude():
+    """A vehicle file that writes 0 for the added mass (a common simplification) had left the
+    candidate a bound of 0.001 kg and every correction an infinite relative size. Left-out
+    coefficients are measured against a body of the vehicle's size (candidates.typical_magnitude:
+    a sphere's added mass is half its displaced mass, rho V / 2 = 3.325 kg here); a file's own
+    values keep their bounds and sizes."""
+    from ground.diagnose import decide
+
+    zero = V.with_values({"hydro.added_mass": [0.0] * 6})
+    am = next(c for c in candidates.candidates_for(zero) if c.effect == "added_mass")
+    assert am.kind == "missing" and am.x0 == (0.0,) * 6
+    half = 0.5 * V.environment.rho * V.body.volume
+    assert am.upper[:3] == pytest.approx([6 * half] * 3) and am.upper[3:] == pytest.approx([0.6 * i for i in V.body.inertia])
+    assert decide.reference_magnitude(am, zero)[:3] == pytest.approx([0.2 * half] * 3)
+    assert decide.correction_size(am, [3.3, 3.3, 4.1, 0, 0, 0], zero) == pytest.approx(4.1 / (0.2 * half))
+    own = next(c for c in candidates.candidates_for(V) if c.effect == "added_mass")  # the file's values
+    assert own.kind == "misestimated" and own.upper == pytest.approx([6 * x for x in V.hydro.added_mass])
+    assert decide.reference_magnitude(own, V) == pytest.approx([0.2 * x for x in V.hydro.added_mass])
+    # one coefficient left out of a vector the file otherwise gives: misestimated, that one sized typically
+    one = V.with_values({"hydro.linear_damping": [1.8, 1.8, 0.0, 0.08, 0.08, 0.05]})
+    ld = next(c for c in candidates.candidates_for(one) if c.effect == "linear_damping")
+    typ = (V.body.mass + half) / 5.0
+    assert ld.kind == "misestimated" and ld.upper[2] == pytest.approx(4 * typ) and ld.upper[0] == pytest.approx(7.2)
+    # the typical magnitudes are the reference vehicle's to within 4x (their docstring)
+    for key in ("hydro.added_mass", "hydro.linear_damping", "hydro.quadratic_damping"):
+        own = getattr(V.hydro, key.split(".")[1])
+        for i in range(6):
+            assert 0.25 < candidates.typical_magnitude(key, i, V) / own[i] < 4.0, (key, i)
+
+
+def test_an_added_mass_the_file_left_out_is_fitted_back(quiet_session):
+    """Noise-free session of the reference; its file with the added mass left out (zeros): the
+    candidate fits the translational added masses back within 15 %."""
+    zero = V.with_values({"hydro.added_mass": [0.0] * 6})
+    ev = candidates.Evaluator(quiet_session, zero)
+    res0 = ev.residual(ev.base)
+    probe = np.random.default_rng(0).normal(size=res0.shape) * 1e-3  # a stand-in noise floor
+    split = locate.make_split(ev.traj0, probe)
+    cand = next(c for c in candidates.candidates_for(zero) if c.effect == "added_mass")
+    f = candidates.fit(ev, cand, split, res0, max_iter=10)
+    got = cand.parameters(f.theta, zero)["hydro.added_mass"]
+    assert got[:3] == pytest.approx(V.hydro.added_mass[:3], rel=0.15)
+    assert f.delta_holdout > 0
+
+
+@pytest.mark.slow
+def test_cli_names_an_added_mass_the_file_left_out(tmp_path):
+    """The user's question end to end: a 60 s session of the reference vehicle against its file
+    with the added mass left out (zeros, a common simplification). The report names the added
+    mass first, as missing, with the heave added mass near the truth."""
+    from ground.prove import vehicle_toml
+
+    record_session(V, tmp_path / "s.tlog", 60.0, seed=5)
+    (tmp_path / "zero.toml").write_text(vehicle_toml(V.with_values({"hydro.added_mass": [0.0] * 6})))
+    code = main(["diagnose", str(tmp_path / "s.tlog"), "--vehicle", str(tmp_path / "zero.toml"),
+                 "--json", str(tmp_path / "r.json"), "--quiet"])
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert code == 0
+    f = rep["findings"][0]
+    assert (f["effect"], f["kind"]) == ("added_mass", "missing")
+    assert f["parameters"]["hydro.added_mass"][2] == pytest.approx(V.hydro.added_mass[2], rel=0.15)

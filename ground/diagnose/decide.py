@@ -49,7 +49,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from onboard.vehicle import VehicleFileError
 
-from .candidates import grid_dt, grid_steps, parameter_scale, train_spacing_s
+from .candidates import grid_dt, grid_steps, parameter_scale, size_of, train_spacing_s
 
 ALPHA_FAMILY = 0.01
 ALPHA_RECORDING = 0.05
@@ -106,7 +106,11 @@ def reference_magnitude(cand, vehicle) -> np.ndarray:
         return 0.005 * x0  # 0.5 % of the volume
     if cand.n_params == 0:
         return np.array([0.5])  # the fraction of the effect switched on
-    return 0.2 * np.maximum(x0, 1e-9)
+    # a fifth of each coefficient's size; of its typical magnitude where the file left it out
+    # (candidates.size_of: a zero has no relative size)
+    size = [size_of(key, i, x, vehicle) if isinstance(key, str) and i is not None else x
+            for (key, i), x in zip(cand.keys, x0)]
+    return 0.2 * np.maximum(np.asarray(size, float), 1e-9)
 
 
 ROUNDING = 1e-9  # a residual change below this share of its channel's size is rounding (`_moved`)
