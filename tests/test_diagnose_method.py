@@ -1119,8 +1119,10 @@ def test_a_fit_whose_sd_exceeds_the_smallest_error_worth_finding_everywhere_is_n
     # a missing effect switched on is the correction itself: its parameter's sd does not size it
     lag = next(c for c in core.candidates_for(V.with_effects(motor_lag=False)) if c.effect == "motor_lag")
     assert lag.switch_on and decide.sd_in_worth(lag, 5.0 * decide.reference_magnitude(lag, V), V) == 0.0
-    # a nominally zero term has no relative size: judged on the others only
-    zero = dataclasses.replace(am, x0=(0.0,) + tuple(am.x0[1:]))
+    # a nominally zero term with no typical magnitude (not a hydrodynamic coefficient, which has
+    # one: candidates.size_of) has no relative size: judged on the others only
+    zero = dataclasses.replace(am, keys=(("sensors.accel_bias", 0),) + am.keys[1:], x0=(0.0,) + tuple(am.x0[1:]))
+    assert decide.reference_magnitude(zero, V)[0] < 1e-9
     assert decide.sd_in_worth(zero, np.r_[1.0, 0.5 * ref[1:]], V) == pytest.approx(0.5)
 
 

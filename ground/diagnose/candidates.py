@@ -191,6 +191,10 @@ def _curve_keys(ft, gain, deviations: bool) -> dict:
 
 
 LEFT_OUT_SHARE = 0.01  # a hydrodynamic coefficient under this share of its `typical_magnitude` was left out
+# ... and its fit ranges up to this many typical magnitudes: a sphere's are an order of magnitude,
+# and a box of the same volume drags far more (bluerov2_heavy.toml's published quadratic damping
+# is 8-13x the sphere's in translation, 14-44x in rotation; a review's find)
+LEFT_OUT_REACH = 50.0
 
 
 def typical_magnitude(key: str, i: int, v: Vehicle) -> float | None:
@@ -219,8 +223,8 @@ def typical_magnitude(key: str, i: int, v: Vehicle) -> float | None:
 def size_of(key: str, i: int, x: float, v: Vehicle) -> float:
     """|x|, or the `typical_magnitude` of a coefficient the vehicle file left out (under
     LEFT_OUT_SHARE of it): the size a correction of `key`[i] is measured against and its fit
-    may range over. A file that writes 0 for the added mass (a common simplification) had left
-    the fit a bound of 0.001 kg and every correction an infinite relative size."""
+    is measured against. A file that writes 0 for the added mass (a common simplification) had
+    left the fit a bound of 0.001 kg and every correction an infinite relative size."""
     return typical_magnitude(key, i, v) if left_out(key, i, x, v) else abs(float(x))
 
 
@@ -231,13 +235,15 @@ def left_out(key: str, i: int, x: float, v: Vehicle) -> bool:
 
 
 def _hydro(effect, key, v: Vehicle, hi_f):
-    """A hydrodynamic coefficient vector, each from 0 up to hi_f times its size (`size_of`);
-    missing when the file leaves all of it out."""
+    """A hydrodynamic coefficient vector, each from 0 up to hi_f times the file's value, or
+    LEFT_OUT_REACH typical magnitudes where the file left it out (`left_out`); missing when the
+    file leaves all of it out."""
     vals = [float(x) for x in getattr(v.hydro, key.split(".")[1])]
-    sizes = [size_of(key, i, x, v) for i, x in enumerate(vals)]
-    kind = "missing" if all(left_out(key, i, x, v) for i, x in enumerate(vals)) else "misestimated"
-    return Candidate(effect, kind, tuple((key, i) for i in range(len(vals))), tuple(vals), (0.0,) * len(vals),
-                     tuple(max(hi_f * sz, 1e-3 * (1 + abs(x))) for x, sz in zip(vals, sizes)))
+    out = [left_out(key, i, x, v) for i, x in enumerate(vals)]
+    upper = [LEFT_OUT_REACH * typical_magnitude(key, i, v) if o else max(hi_f * x, 1e-3 * (1 + x))
+             for i, (x, o) in enumerate(zip(vals, out))]
+    return Candidate(effect, "missing" if all(out) else "misestimated", tuple((key, i) for i in range(len(vals))),
+                     tuple(vals), (0.0,) * len(vals), tuple(upper))
 
 
 DELAY_SCAN_S = (0.0, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5)  # the delay's scan (s)

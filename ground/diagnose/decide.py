@@ -450,7 +450,8 @@ def sd_in_worth(cand, sd, vehicle) -> float:
         return 0.0
     ref = np.asarray(reference_magnitude(cand, vehicle), float)
     sd = np.asarray(sd, float)
-    sized = ref > 1e-9  # not a nominally zero term (reference_magnitude's floor: no relative size)
+    sized = ref > 1e-9  # not a nominally zero term without a typical magnitude (reference_magnitude's
+    # floor: no relative size; a left-out hydrodynamic coefficient has one, candidates.size_of)
     if sd.shape != ref.shape or not sized.any():
         return 0.0
     return relative_sd(sd[sized], ref[sized])
