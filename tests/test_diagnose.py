@@ -438,3 +438,16 @@ def test_cli_names_an_added_mass_the_file_left_out(tmp_path):
     f = rep["findings"][0]
     assert (f["effect"], f["kind"]) == ("added_mass", "missing")
     assert f["parameters"]["hydro.added_mass"][2] == pytest.approx(V.hydro.added_mass[2], rel=0.15)
+
+
+def test_a_fit_on_its_bound_says_the_truth_may_lie_beyond():
+    """core.at_bound: a fitted parameter on the end of its search range is named (the report
+    adds it to the explanation and `at_bound`); a coefficient fitted to zero, its physical
+    floor, and one inside its range are not."""
+    zero = V.with_values({"hydro.quadratic_damping": [0.0] * 6})
+    qd = next(c for c in candidates.candidates_for(zero) if c.effect == "quadratic_damping")
+    theta = np.array(qd.upper) * [1.0, 0.5, 0.0, 0.5, 0.9995, 0.5]
+    assert core.at_bound(qd, theta) == ["hydro.quadratic_damping[0]", "hydro.quadratic_damping[4]"]
+    lag = next(c for c in candidates.candidates_for(V.with_effects(motor_lag=True)) if c.effect == "motor_lag")
+    assert core.at_bound(lag, [lag.lower[0]]) == ["thruster.motor_time_constant"]  # 5 ms: not a physical zero
+    assert core.at_bound(lag, [0.08]) == []

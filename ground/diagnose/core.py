@@ -1337,12 +1337,17 @@ def _finding(f: Fit, vehicle: Vehicle, score, tested_with: str | None = None, *,
     verb = "adding" if c.kind == "missing" else "correcting"
     what = c.effect.replace("_", " ")
     phrase = PHRASES["current (vertical)"] if c.effect == "current" and c.n_params == 1 else PHRASES.get(c.effect, "")
+    bound = at_bound(c, f.theta)
     explanation = (f"{' and '.join(axes) or 'the'} residual {phrase}; {verb} {what}"
                    + (f" with {ptxt}" if ptxt else "")
-                   + f" explains {100 * explained:.0f} % of it on held-out data")
+                   + f" explains {100 * explained:.0f} % of it on held-out data"
+                   + (f"; {', '.join(bound)} {'sits' if len(bound) == 1 else 'sit'} on the fit's bound: "
+                      "the truth may lie beyond it" if bound else ""))
     out = {"effect": c.public, "kind": c.kind, "confidence": None, "parameters": params,
            "explanation": explanation, "heldout_chi2_drop": round(f.delta_holdout, 1),
            "explained": round(explained, 3), "bic": round(f.bic, 1), "axes": axes}
+    if bound:
+        out["at_bound"] = bound
     if score is not None and c.n_params and score.effect == c.effect:
         sd = reported_sd(decide.calibrated_sd(score, cal), f.sd)
         out["std"] = c.parameters(sd, vehicle, deviations=True)
@@ -1353,6 +1358,22 @@ def _finding(f: Fit, vehicle: Vehicle, score, tested_with: str | None = None, *,
     if tested_with:
         out["tested_with"] = [tested_with]
     return out
+
+
+BOUND_SHARE = 1e-3  # of a parameter's range: a fit this close to a bound is on it
+
+
+def at_bound(c: Candidate, theta) -> list[str]:
+    """The parameters (`hydro.quadratic_damping[1]`) whose fit stopped on a bound of the search,
+    so the truth may lie past it (a review's find: a left-out damping on a box-shaped vehicle
+    fitted to the end of its range and reported as found); a lower bound at zero is a physical
+    floor (a coefficient that vanishes), not a limit of the search."""
+    lo, hi, th = (np.asarray(x, float) for x in (c.lower, c.upper, theta))
+    if not len(th):
+        return []
+    tol = BOUND_SHARE * (hi - lo)
+    on = (th >= hi - tol) | ((lo != 0.0) & (th <= lo + tol))
+    return [c.parameter_name(j) for j in np.flatnonzero(on)]
 
 
 def _fmt(v):
