@@ -210,7 +210,7 @@ def typical_magnitude(key: str, i: int, v: Vehicle) -> float | None:
     0.03-0.05: an order of magnitude, used only where the file says (nearly) zero."""
     b, rho = v.body, v.environment.rho
     ma = 0.5 * rho * b.volume
-    rot = i >= 3 and b.inertia[min(i - 3, 2)]
+    rot = b.inertia[i - 3] if i >= 3 else 0.0  # the axis' rigid-body inertia
     if key == "hydro.added_mass":
         return 0.1 * rot if i >= 3 else ma
     if key == "hydro.linear_damping":
@@ -222,9 +222,9 @@ def typical_magnitude(key: str, i: int, v: Vehicle) -> float | None:
 
 def size_of(key: str, i: int, x: float, v: Vehicle) -> float:
     """|x|, or the `typical_magnitude` of a coefficient the vehicle file left out (under
-    LEFT_OUT_SHARE of it): the size a correction of `key`[i] is measured against and its fit
-    is measured against. A file that writes 0 for the added mass (a common simplification) had
-    left the fit a bound of 0.001 kg and every correction an infinite relative size."""
+    LEFT_OUT_SHARE of it): the size a correction of `key`[i] is measured against. A file that
+    writes 0 for the added mass (a common simplification) had left the fit a bound of 0.001 kg
+    and every correction an infinite relative size."""
     return typical_magnitude(key, i, v) if left_out(key, i, x, v) else abs(float(x))
 
 
