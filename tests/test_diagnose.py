@@ -399,8 +399,9 @@ def test_a_coefficient_the_file_leaves_out_is_sized_by_its_typical_magnitude():
     one = V.with_values({"hydro.linear_damping": [1.8, 1.8, 0.0, 0.08, 0.08, 0.05]})
     ld = next(c for c in candidates.candidates_for(one) if c.effect == "linear_damping")
     typ = (V.body.mass + half) / 5.0
-    assert ld.kind == "misestimated" and ld.upper[2] == pytest.approx(reach * typ) and ld.upper[0] == pytest.approx(7.2)
-    # the typical magnitudes are the reference vehicle's to within 4x (their docstring)
+    assert ld.kind == "misestimated" and ld.upper[2] == pytest.approx(reach * typ) and ld.upper[0] == pytest.approx(4 * V.hydro.linear_damping[0])
+    # the typical magnitudes are the reference vehicle's to within 4x (their docstring); none for other keys
+    assert candidates.typical_magnitude("body.cb", 0, V) is None and candidates.size_of("body.cb", 0, -0.02, V) == 0.02
     for key in ("hydro.added_mass", "hydro.linear_damping", "hydro.quadratic_damping"):
         own = getattr(V.hydro, key.split(".")[1])
         for i in range(6):

@@ -197,17 +197,24 @@ LEFT_OUT_SHARE = 0.01  # a hydrodynamic coefficient under this share of its `typ
 LEFT_OUT_REACH = 50.0
 
 
-def typical_magnitude(key: str, i: int, v: Vehicle) -> float | None:
+HYDRO_KEYS = ("hydro.added_mass", "hydro.linear_damping", "hydro.quadratic_damping")
+
+
+def typical_magnitude(key: str, i, v: Vehicle) -> float | None:
     """The order of magnitude of hydrodynamic coefficient `key`[i] for a body of `v`'s mass,
     volume, radius and inertia (None for any other key): what a vehicle file that leaves the
-    term out (writes 0) is compared with. Translation: a sphere's added mass is half its
-    displaced mass (Newman 1977, Marine Hydrodynamics, section 4.13; Fossen 2011, section 6.3);
-    quadratic drag 0.5 rho Cd pi r^2 with a sphere's Cd = 0.5; linear damping the body's mass,
-    added mass included, over a 5 s decay. Rotation: a tenth of the rigid-body inertia, the
-    inertia over a 1 s decay, and 0.5 rho r^5 (drag on the hull's scale). On the reference
-    vehicle (asr4.toml) these are 3.3 kg, 20 N s^2/m^2, 2.0 N s/m, 0.006 kg m^2, 0.06 N m s/rad
-    and 0.05 N m s^2/rad^2 against its 3.3-4.1, 18-24, 1.8-2.6, 0.002-0.006, 0.05-0.08 and
-    0.03-0.05: an order of magnitude, used only where the file says (nearly) zero."""
+    term out (writes 0) is compared with. Translation: a sphere's potential-flow added mass
+    (2/3) pi rho r^3, half its displaced mass rho V (Newman 1977, Marine Hydrodynamics, ch. 4);
+    quadratic drag 0.5 rho Cd pi r^2 with Cd = 0.5, a sphere's below the drag crisis (Hoerner
+    1965, Fluid-Dynamic Drag); linear damping the body's mass, added mass included, over a 5 s
+    decay. Rotation, by dimensions only (a sphere has no rotational added mass nor form drag):
+    a tenth of the rigid-body inertia, the inertia over a 1 s decay, and 0.5 rho r^5. On the
+    reference vehicle (asr4.toml) these are 3.3 kg, 20 N s^2/m^2, 2.0 N s/m, 0.006-0.0075 kg m^2,
+    0.06-0.075 N m s/rad and 0.05 N m s^2/rad^2 against its 3.3-4.1, 18-24, 1.8-2.6,
+    0.002-0.006, 0.05-0.08 and 0.03-0.05: an order of magnitude, used only where the file says
+    (nearly) zero."""
+    if key not in HYDRO_KEYS or i is None:
+        return None
     b, rho = v.body, v.environment.rho
     ma = 0.5 * rho * b.volume
     rot = b.inertia[i - 3] if i >= 3 else 0.0  # the axis' rigid-body inertia
@@ -215,12 +222,10 @@ def typical_magnitude(key: str, i: int, v: Vehicle) -> float | None:
         return 0.1 * rot if i >= 3 else ma
     if key == "hydro.linear_damping":
         return rot / 1.0 if i >= 3 else (b.mass + ma) / 5.0
-    if key == "hydro.quadratic_damping":
-        return 0.5 * rho * b.radius ** 5 if i >= 3 else 0.5 * rho * 0.5 * math.pi * b.radius ** 2
-    return None
+    return 0.5 * rho * b.radius ** 5 if i >= 3 else 0.5 * rho * 0.5 * math.pi * b.radius ** 2
 
 
-def size_of(key: str, i: int, x: float, v: Vehicle) -> float:
+def size_of(key: str, i, x: float, v: Vehicle) -> float:
     """|x|, or the `typical_magnitude` of a coefficient the vehicle file left out (under
     LEFT_OUT_SHARE of it): the size a correction of `key`[i] is measured against. A file that
     writes 0 for the added mass (a common simplification) had left the fit a bound of 0.001 kg
@@ -228,7 +233,7 @@ def size_of(key: str, i: int, x: float, v: Vehicle) -> float:
     return typical_magnitude(key, i, v) if left_out(key, i, x, v) else abs(float(x))
 
 
-def left_out(key: str, i: int, x: float, v: Vehicle) -> bool:
+def left_out(key: str, i, x: float, v: Vehicle) -> bool:
     """Coefficient `key`[i] = x is (nearly) zero: under LEFT_OUT_SHARE of its typical magnitude."""
     t = typical_magnitude(key, i, v)
     return t is not None and abs(x) < LEFT_OUT_SHARE * t

@@ -108,8 +108,7 @@ def reference_magnitude(cand, vehicle) -> np.ndarray:
         return np.array([0.5])  # the fraction of the effect switched on
     # a fifth of each coefficient's size; of its typical magnitude where the file left it out
     # (candidates.size_of: a zero has no relative size)
-    size = [size_of(key, i, x, vehicle) if isinstance(key, str) and i is not None else x
-            for (key, i), x in zip(cand.keys, x0)]
+    size = [size_of(key, i, x, vehicle) for (key, i), x in zip(cand.keys, x0)]
     return 0.2 * np.maximum(np.asarray(size, float), 1e-9)
 
 
