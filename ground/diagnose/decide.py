@@ -230,9 +230,12 @@ def most_likely(parts):
 
 def _regress(J_tr, J_ho, y_tr, y_ho):
     """(S, held-out drop, dtheta, sd) of the weighted regression of y on J (module doc)."""
-    A = J_tr.T @ J_tr
-    g = J_tr.T @ y_tr
-    if not np.trace(A) > 0:  # the candidate changes nothing on this recording: no evidence
+    with np.errstate(over="ignore", invalid="ignore"):  # a sensitivity past float range: judged below
+        A = J_tr.T @ J_tr
+        g = J_tr.T @ y_tr
+    if not (0 < np.trace(A) < np.inf and np.all(np.isfinite(g))):
+        # the candidate changes nothing on this recording, or its sensitivity overflows (a vehicle
+        # at the limit of a parameter): no evidence either way
         n = A.shape[0]
         return 0.0, 0.0, np.zeros(n), np.full(n, np.inf)
     ridge = 1e-12 * np.trace(A)
