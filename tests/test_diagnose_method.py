@@ -715,6 +715,30 @@ def test_correction_size_in_units_of_the_smallest_error_worth_finding():
     assert missing.switch_on and decide.correction_size(missing, [0.001], V) == math.inf
 
 
+def test_an_imu_bias_is_named_only_when_an_axis_stands_out_of_its_noise_and_may_be_worth_finding():
+    """Hand computed against one count of MAVLink's SCALED_IMU (1 mrad/s, 1 mG; half: 0.5 mrad/s,
+    4.9 mG). The two false biases of fresh block 8332-8631 as reported (controls 8360, 8610):
+    their gyro axes stand out (2.6 and 2.5 sd) but at most 0.12 and 0.25 mrad/s with 2 sd; the
+    accelerometer's 1.5 mG is 0.55 sd, no evidence either way (its 6.9 mG with 2 sd would have
+    carried the bias over the size rule alone). The smallest concealed benchmark bias (4 mrad/s)
+    is named; so is an accel bias of 10 mG at 4 sd."""
+    def worth(gyro, accel, sd_g, sd_a):
+        score = decide.Score("imu_bias", 6, 10.0, math.nan, np.array(gyro + accel), None, decide.IMU_BIAS_WORTH)
+        return not decide.bias_too_small(score, np.zeros(6), np.array([sd_g] * 3 + [sd_a] * 3))
+    assert not worth([1.93e-05, -8.113e-06, 6.672e-05], [1.437e-4, -1.085e-4, -6.825e-05], 2.7e-5, 1.9e-3)  # 8360
+    assert not worth([1.508e-05, 1.358e-4, 2.414e-05], [-5.026e-4, 1.488e-3, 4.166e-4], 5.5e-5, 2.7e-3)  # 8610
+    assert worth([0.004, 0.0, 0.0], [0.0, 0.0, 0.0], 5e-5, 2e-3)
+    assert worth([0.0, 0.0, 0.0], [0.01, 0.0, 0.0], 5e-5, 2.5e-3)
+    # the edge, at 0.1 mrad/s sd: 0.31 mrad/s reaches 0.51 with 2 sd, 0.29 only 0.49
+    assert worth([3.1e-4, 0, 0], [0, 0, 0], 1e-4, 1e-3) and not worth([2.9e-4, 0, 0], [0, 0, 0], 1e-4, 1e-3)
+    # 0.4 mrad/s at 0.25 mrad/s sd reaches it (0.9) but is within 2 sd: no evidence of a bias
+    assert not worth([4e-4, 0, 0], [0, 0, 0], 2.5e-4, 1e-3)
+    # a nominal bias in the file: the correction is measured from it
+    score = decide.Score("imu_bias", 6, 10.0, math.nan, np.array([0.0101, 0, 0, 0, 0, 0]), None, decide.IMU_BIAS_WORTH)
+    assert decide.bias_too_small(score, np.array([0.01, 0, 0, 0, 0, 0]), np.full(6, 1e-5)).startswith(
+        "the axes over 2 sd of their noise reach 0.12 of")
+
+
 def test_sandwich_sd_hand_computed_for_white_residuals():
     """Lag 0, the mean of r (J = -1 on one channel): A = T (+ the prior), B = sum r^2, so the sd
     is sqrt(sum r^2) / (T + prior), the textbook standard error of a mean."""

@@ -366,8 +366,13 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     why_not.update(_displaced(confounded, again_with))
     # an IMU bias is named when it stands further above its threshold than the forces named
     bias = by_effect["imu_bias"]
-    bias_named = any(s.effect == "imu_bias" for s in significant) and (not chosen or bias.statistic / cal.threshold[
-        "imu_bias"] > max(by_effect[f.candidate.effect].statistic / cal.threshold[f.candidate.effect] for f in chosen))
+    bias_significant = any(s.effect == "imu_bias" for s in significant)
+    bias_small = decide.bias_too_small(bias, next(c for c in cands if c.effect == "imu_bias").x0,
+                                       decide.calibrated_sd(bias, cal))
+    bias_negligible = bias_significant and bool(bias_small)  # reported under `negligible`
+    bias_named = bias_significant and not bias_small and (
+        not chosen or bias.statistic / cal.threshold["imu_bias"] > max(
+            by_effect[f.candidate.effect].statistic / cal.threshold[f.candidate.effect] for f in chosen))
     # --- unknown: a sparse term when nothing known explains enough
     c0_h, _ = chi2(res0, split, split.holdout)
     n_h = len(split.holdout) * float(split.neff[split.active].sum())
@@ -507,7 +512,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     # out of the held-out blocks' reach (`_unconfirmable`): by the report's name, once, and not when a
     # candidate of that name was judged otherwise (a thrust curve and a unit's fault are one name; an
     # effect named in a pair, then withdrawn, was tested)
-    verdict = named | set(rejected) | {f.candidate.public for f, _ in small}  # named, rejected or negligible
+    verdict = (named | set(rejected) | {f.candidate.public for f, _ in small}  # named, rejected or negligible
+               | ({"imu_bias"} if bias_negligible else set()))
     judged = verdict | {f.candidate.public for f in single}
     blind = {}
     for c, why in unconfirmed:
@@ -581,7 +587,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
         **({"reversed_by_autopilot": reversed_units} if reversed_units else {}),
         "untestable": untestable,
         "rejected": rejected,
-        "negligible": negligible(small, named | set(rejected)),
+        "negligible": negligible(small, named | set(rejected)) + (
+            [{"effect": "imu_bias", "kind": "missing", "why": bias_small}] if bias_negligible else []),
         "fit": {
             "holdout": {
                 "before": {"total": round(shots["total_before"], 4),
