@@ -370,6 +370,8 @@ def diagnose(rec, vehicle: Vehicle, progress=None, max_fit_s: float = 120.0, dra
     bias_small = decide.bias_too_small(bias, next(c for c in cands if c.effect == "imu_bias").x0,
                                        decide.calibrated_sd(bias, cal))
     bias_negligible = bias_significant and bool(bias_small)  # reported under `negligible`
+    if bias_negligible:
+        _say(progress, f"imu_bias not named: {bias_small}")
     bias_named = bias_significant and not bias_small and (
         not chosen or bias.statistic / cal.threshold["imu_bias"] > max(
             by_effect[f.candidate.effect].statistic / cal.threshold[f.candidate.effect] for f in chosen))
