@@ -550,6 +550,10 @@ def _check_full_rank(v: Vehicle, err: "_Errors") -> None:
 
 
 BUOYANCY_RATIO = (0.5, 2.0)  # rho V / m of a vehicle that dives and surfaces on its thrusters
+HULL_FILL = (0.01, 20.0)  # V / (4/3 pi radius^3): the displaced volume against the sphere of the
+# file's radius (asr4's floodable hull 0.39, bluerov2_heavy's sphere of its volume 1.0). A hostile
+# user's find (2026-12-02): radius 5 m or 1 cm with asr4's 6.65 litres passed, and the surface
+# crossing (spec: s = h^2 (3R - h) / 4R^3) of a 5 m sphere at 0.4 m depth is half out of the water
 
 
 MIN_JET_THRUST_N = 1e-3  # a jet's thrust at full speed below this is a jet that pushes nothing
@@ -558,13 +562,19 @@ MIN_JET_THRUST_N = 1e-3  # a jet's thrust at full speed below this is a jet that
 def _check_plausible(v: Vehicle, err: "_Errors") -> None:
     """What each key's range cannot see (issue 15, second pass: thrust coefficients of zero, or a
     1000 kg vehicle of the stock 6.65 litres, passed): buoyancy against weight rho V / m within
-    `BUOYANCY_RATIO`, and the jets' thrust coefficient K(J) (seed 000 eq. 15) positive over the
-    advance ratios of the fit (`j_range`; a fixed-thruster vehicle's stand-in has no jets)."""
+    `BUOYANCY_RATIO`, the volume against the sphere of the radius within `HULL_FILL`, and the
+    jets' thrust coefficient K(J) (seed 000 eq. 15) positive over the advance ratios of the fit
+    (`j_range`; a fixed-thruster vehicle's stand-in has no jets)."""
     ratio = v.environment.rho * v.body.volume / v.body.mass
     if not BUOYANCY_RATIO[0] <= ratio <= BUOYANCY_RATIO[1]:
         err.lines.append(f"body.mass {v.body.mass:g} kg with body.volume {v.body.volume:g} m^3: buoyancy/weight "
                          f"rho V / m {ratio:.3g}: expected {BUOYANCY_RATIO[0]:g}-{BUOYANCY_RATIO[1]:g} "
                          "(near neutral); grams? litres?")
+    fill = v.body.volume / (4.0 / 3.0 * math.pi * v.body.radius ** 3)
+    if not HULL_FILL[0] <= fill <= HULL_FILL[1]:
+        err.lines.append(f"body.radius {v.body.radius:g} m with body.volume {v.body.volume:g} m^3: the volume fills "
+                         f"{fill:.3g} of the radius' sphere: expected {HULL_FILL[0]:g}-{HULL_FILL[1]:g} "
+                         "(the hull sphere's radius); a length? cm?")
     if v.n_jets:
         k0, k1, k2 = v.thruster.kt
         lo, hi = v.thruster.j_range

@@ -400,6 +400,22 @@ def test_a_coefficient_the_file_leaves_out_is_sized_by_its_typical_magnitude():
     ld = next(c for c in candidates.candidates_for(one) if c.effect == "linear_damping")
     typ = (V.body.mass + half) / 5.0
     assert ld.kind == "misestimated" and ld.upper[2] == pytest.approx(reach * typ) and ld.upper[0] == pytest.approx(4 * V.hydro.linear_damping[0])
+    # no cliff at the 1 % cut (a hostile user's find): 0.034 kg, just over 1 % of 3.325 kg, keeps a
+    # range of 50 x (1 - 0.034 / 0.3325) typical magnitudes, where the file's own 6x range had
+    # stopped at 0.2 kg, and its own size; 0.4 kg (over 10 %) keeps the file's range
+    near = V.with_values({"hydro.added_mass": [0.034, 3.3, 4.1, 0.006, 0.006, 0.002]})
+    am = next(c for c in candidates.candidates_for(near) if c.effect == "added_mass")
+    w = 1 - 0.034 / (0.1 * half)
+    assert am.kind == "misestimated" and am.upper[0] == pytest.approx(w * reach * half) and am.upper[1] == pytest.approx(6 * 3.3)
+    assert decide.reference_magnitude(am, near)[0] == pytest.approx(0.2 * 0.034)
+    far = V.with_values({"hydro.added_mass": [0.4, 3.3, 4.1, 0.006, 0.006, 0.002]})
+    am = next(c for c in candidates.candidates_for(far) if c.effect == "added_mass")
+    assert am.upper[0] == pytest.approx(6 * 0.4) and decide.reference_magnitude(am, far)[0] == pytest.approx(0.2 * 0.4)
+    # sized from the volume, not the file's radius (surface crossing only): a radius of 0.3 m leaves them as they are
+    wide = V.with_values({"body.radius": 0.3})
+    for key in candidates.HYDRO_KEYS:
+        assert [candidates.typical_magnitude(key, i, wide) for i in range(6)] == [
+            candidates.typical_magnitude(key, i, V) for i in range(6)]
     # the typical magnitudes are the reference vehicle's to within 4x (their docstring); none for other keys
     assert candidates.typical_magnitude("body.cb", 0, V) is None and candidates.size_of("body.cb", 0, -0.02, V) == 0.02
     for key in ("hydro.added_mass", "hydro.linear_damping", "hydro.quadratic_damping"):

@@ -191,10 +191,19 @@ def _curve_keys(ft, gain, deviations: bool) -> dict:
 
 
 LEFT_OUT_SHARE = 0.01  # a hydrodynamic coefficient under this share of its `typical_magnitude` was left out
-# ... and its fit ranges up to this many typical magnitudes: a sphere's are an order of magnitude,
-# and a box of the same volume drags far more (bluerov2_heavy.toml's published quadratic damping
-# is 8-13x the sphere's in translation, 14-44x in rotation; a review's find)
-LEFT_OUT_REACH = 50.0
+# (the candidate is "missing" when all of its coefficients were) ...
+LEFT_OUT_REACH = 50.0  # ... and its fit ranges up to this many typical magnitudes: a sphere's are an
+# order of magnitude, and a box of the same volume drags far more (bluerov2_heavy.toml's published
+# quadratic damping is 8-13x the sphere's in translation; a review's find)
+SUSPECT_SHARE = 0.1  # a coefficient under this share of its typical magnitude may be a placeholder:
+# its fit's range grows linearly toward the left-out one as it falls to 0 (`_left_out_weight`). A
+# hostile user's find (2026-12-02): with a cut at LEFT_OUT_SHARE alone an added mass written 0.034
+# kg kept the file's 6x range and was fitted at 0 where one written 1e-12 was fitted to the truth.
+# Only the range: the size a correction is measured against stays |x| above LEFT_OUT_SHARE, since
+# a streamlined body sits at 5-7 % of the bluff sphere's magnitudes (REMUS 100's surge drag and
+# added mass, Prestero 2001; a review's find) and its real errors must stay nameable. Not tuned:
+# the reference vehicle's coefficients stand at 0.27x their typical magnitude or more, so its
+# ranges (the benchmark's) are the file's own as before
 
 
 HYDRO_KEYS = ("hydro.added_mass", "hydro.linear_damping", "hydro.quadratic_damping")
@@ -202,17 +211,21 @@ HYDRO_KEYS = ("hydro.added_mass", "hydro.linear_damping", "hydro.quadratic_dampi
 
 def typical_magnitude(key: str, i, v: Vehicle) -> float | None:
     """The order of magnitude of hydrodynamic coefficient `key`[i] for a body of `v`'s mass,
-    volume, radius and inertia (None for any other key): what a vehicle file that leaves the
-    term out (writes 0) is compared with. Translation: a sphere's potential-flow added mass
-    (2/3) pi rho r^3, half its displaced mass rho V (Newman 1977, Marine Hydrodynamics, ch. 4);
-    quadratic drag 0.5 rho Cd pi r^2 with Cd = 0.5, a sphere's below the drag crisis (Hoerner
-    1965, Fluid-Dynamic Drag); linear damping the body's mass, added mass included, over a 5 s
-    decay. Rotation, by dimensions only (a sphere has no rotational added mass nor form drag):
-    a tenth of the rigid-body inertia, the inertia over a 1 s decay, and 0.5 rho r^5. On the
-    reference vehicle (asr4.toml) these are 3.3 kg, 20 N s^2/m^2, 2.0 N s/m, 0.006-0.0075 kg m^2,
-    0.06-0.075 N m s/rad and 0.05 N m s^2/rad^2 against its 3.3-4.1, 18-24, 1.8-2.6,
+    volume and inertia (None for any other key): what a vehicle file that leaves the term out
+    (writes 0) is compared with. Sizes come from the radius of the sphere of the file's volume,
+    r = (3 V / 4 pi)^(1/3), not the file's `radius` (the surface and floor effects'): the volume
+    is checked against the mass, and an absurd radius (5 m or 1 cm for asr4's 6.65 litres, a hostile user's
+    find) had made the damping of such a file too small or too large to name. Translation: a
+    sphere's potential-flow added mass (2/3) pi rho r^3, half its displaced mass rho V (Newman
+    1977, Marine Hydrodynamics, ch. 4); quadratic drag 0.5 rho Cd pi r^2 with Cd = 0.5, a sphere's
+    below the drag crisis (Hoerner 1965, Fluid-Dynamic Drag); linear damping the body's mass, added
+    mass included, over a 5 s decay. Rotation (a sphere has no rotational added mass nor form
+    drag): a tenth of the rigid-body inertia, the inertia over a 1 s decay, and the translational
+    quadratic drag at the rim, r^3 times it (a protrusion at r moving at omega r). On the reference
+    vehicle (asr4.toml, r = 0.117 m) these are 3.3 kg, 10.7 N s^2/m^2, 2.0 N s/m, 0.006-0.0075 kg
+    m^2, 0.06-0.075 N m s/rad and 0.017 N m s^2/rad^2 against its 3.3-4.1, 18-24, 1.8-2.6,
     0.002-0.006, 0.05-0.08 and 0.03-0.05: an order of magnitude, used only where the file says
-    (nearly) zero."""
+    (nearly) zero (`size_of`) or under a tenth of it (the fit's range, `_hydro`)."""
     if key not in HYDRO_KEYS or i is None:
         return None
     b, rho = v.body, v.environment.rho
@@ -222,7 +235,18 @@ def typical_magnitude(key: str, i, v: Vehicle) -> float | None:
         return 0.1 * rot if i >= 3 else ma
     if key == "hydro.linear_damping":
         return rot / 1.0 if i >= 3 else (b.mass + ma) / 5.0
-    return 0.5 * rho * b.radius ** 5 if i >= 3 else 0.5 * rho * 0.5 * math.pi * b.radius ** 2
+    r = (3.0 * b.volume / (4.0 * math.pi)) ** (1.0 / 3.0)
+    drag = 0.5 * rho * 0.5 * math.pi * r ** 2
+    return drag * r ** 3 if i >= 3 else drag
+
+
+def _left_out_weight(key: str, i, x: float, v: Vehicle) -> float:
+    """How far coefficient `key`[i] = x is searched as if left out: 1 at 0, falling linearly to 0
+    at SUSPECT_SHARE of its `typical_magnitude` and beyond (0 for keys without one)."""
+    t = typical_magnitude(key, i, v)
+    if t is None or not t > 0:
+        return 0.0
+    return max(0.0, 1.0 - abs(float(x)) / (SUSPECT_SHARE * t))
 
 
 def size_of(key: str, i, x: float, v: Vehicle) -> float:
@@ -240,13 +264,16 @@ def left_out(key: str, i, x: float, v: Vehicle) -> bool:
 
 
 def _hydro(effect, key, v: Vehicle, hi_f):
-    """A hydrodynamic coefficient vector, each from 0 up to hi_f times the file's value, or
-    LEFT_OUT_REACH typical magnitudes where the file left it out (`left_out`); missing when the
-    file leaves all of it out."""
+    """A hydrodynamic coefficient vector, each from 0 up to hi_f times the file's value, or up to
+    LEFT_OUT_REACH typical magnitudes as the value falls toward 0 (`_left_out_weight`); missing
+    when the file leaves all of it out (`left_out`)."""
     vals = [float(x) for x in getattr(v.hydro, key.split(".")[1])]
     out = [left_out(key, i, x, v) for i, x in enumerate(vals)]
-    upper = [LEFT_OUT_REACH * typical_magnitude(key, i, v) if o else max(hi_f * x, 1e-3 * (1 + x))
-             for i, (x, o) in enumerate(zip(vals, out))]
+    upper = []
+    for i, x in enumerate(vals):
+        w = _left_out_weight(key, i, x, v)
+        own = max(hi_f * x, 1e-3 * (1 + x))
+        upper.append(max(own, w * LEFT_OUT_REACH * typical_magnitude(key, i, v)) if w > 0 else own)
     return Candidate(effect, "missing" if all(out) else "misestimated", tuple((key, i) for i in range(len(vals))),
                      tuple(vals), (0.0,) * len(vals), tuple(upper))
 
