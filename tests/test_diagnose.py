@@ -411,6 +411,11 @@ def test_a_coefficient_the_file_leaves_out_is_sized_by_its_typical_magnitude():
     far = V.with_values({"hydro.added_mass": [0.4, 3.3, 4.1, 0.006, 0.006, 0.002]})
     am = next(c for c in candidates.candidates_for(far) if c.effect == "added_mass")
     assert am.upper[0] == pytest.approx(6 * 0.4) and decide.reference_magnitude(am, far)[0] == pytest.approx(0.2 * 0.4)
+    # the reference vehicle's coefficients are all over a tenth of their typical magnitudes, the
+    # benchmark's smallest nominal (a heave added mass of 0.82 kg) too: their ranges are the file's
+    assert not any(candidates._left_out_weight(key, i, x, V) for key in candidates.HYDRO_KEYS
+                   for i, x in enumerate(getattr(V.hydro, key.split(".")[1])))
+    assert candidates._left_out_weight("hydro.added_mass", 2, 0.82, V) == 0.0
     # sized from the volume, not the file's radius (surface crossing only): a radius of 0.3 m leaves them as they are
     wide = V.with_values({"body.radius": 0.3})
     for key in candidates.HYDRO_KEYS:
