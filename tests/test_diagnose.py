@@ -416,7 +416,7 @@ def test_a_coefficient_the_file_leaves_out_is_sized_by_its_typical_magnitude():
     assert not any(candidates._left_out_weight(key, i, x, V) for key in candidates.HYDRO_KEYS
                    for i, x in enumerate(getattr(V.hydro, key.split(".")[1])))
     assert candidates._left_out_weight("hydro.added_mass", 2, 0.82, V) == 0.0
-    # sized from the volume, not the file's radius (surface crossing only): a radius of 0.3 m leaves them as they are
+    # sized from the volume, not the file's radius (the surface and floor effects'): a radius of 0.3 m leaves them as they are
     wide = V.with_values({"body.radius": 0.3})
     for key in candidates.HYDRO_KEYS:
         assert [candidates.typical_magnitude(key, i, wide) for i in range(6)] == [

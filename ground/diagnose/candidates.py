@@ -214,8 +214,8 @@ def typical_magnitude(key: str, i, v: Vehicle) -> float | None:
     volume and inertia (None for any other key): what a vehicle file that leaves the term out
     (writes 0) is compared with. Sizes come from the radius of the sphere of the file's volume,
     r = (3 V / 4 pi)^(1/3), not the file's `radius` (the surface and floor effects'): the volume
-    is checked against the mass, and an absurd radius (5 m or 1 cm for asr4's 6.65 litres, a hostile user's
-    find) had made the damping of such a file too small or too large to name. Translation: a
+    is checked against the mass, and an absurd radius (5 m or 1 cm for asr4's 6.65 litres, a
+    hostile user's find) had made the damping of such a file too small or too large to name. Translation: a
     sphere's potential-flow added mass (2/3) pi rho r^3, half its displaced mass rho V (Newman
     1977, Marine Hydrodynamics, ch. 4); quadratic drag 0.5 rho Cd pi r^2 with Cd = 0.5, a sphere's
     below the drag crisis (Hoerner 1965, Fluid-Dynamic Drag); linear damping the body's mass, added
@@ -240,13 +240,17 @@ def typical_magnitude(key: str, i, v: Vehicle) -> float | None:
     return drag * r ** 3 if i >= 3 else drag
 
 
+def _share(key: str, i, x: float, v: Vehicle) -> float | None:
+    """|x| over the `typical_magnitude` of coefficient `key`[i] (None for keys without one)."""
+    t = typical_magnitude(key, i, v)
+    return abs(float(x)) / t if t is not None and t > 0 else None
+
+
 def _left_out_weight(key: str, i, x: float, v: Vehicle) -> float:
     """How far coefficient `key`[i] = x is searched as if left out: 1 at 0, falling linearly to 0
     at SUSPECT_SHARE of its `typical_magnitude` and beyond (0 for keys without one)."""
-    t = typical_magnitude(key, i, v)
-    if t is None or not t > 0:
-        return 0.0
-    return max(0.0, 1.0 - abs(float(x)) / (SUSPECT_SHARE * t))
+    q = _share(key, i, x, v)
+    return 0.0 if q is None else max(0.0, 1.0 - q / SUSPECT_SHARE)
 
 
 def size_of(key: str, i, x: float, v: Vehicle) -> float:
@@ -259,8 +263,8 @@ def size_of(key: str, i, x: float, v: Vehicle) -> float:
 
 def left_out(key: str, i, x: float, v: Vehicle) -> bool:
     """Coefficient `key`[i] = x is (nearly) zero: under LEFT_OUT_SHARE of its typical magnitude."""
-    t = typical_magnitude(key, i, v)
-    return t is not None and abs(x) < LEFT_OUT_SHARE * t
+    q = _share(key, i, x, v)
+    return q is not None and q < LEFT_OUT_SHARE
 
 
 def _hydro(effect, key, v: Vehicle, hi_f):
@@ -269,11 +273,9 @@ def _hydro(effect, key, v: Vehicle, hi_f):
     when the file leaves all of it out (`left_out`)."""
     vals = [float(x) for x in getattr(v.hydro, key.split(".")[1])]
     out = [left_out(key, i, x, v) for i, x in enumerate(vals)]
-    upper = []
-    for i, x in enumerate(vals):
-        w = _left_out_weight(key, i, x, v)
-        own = max(hi_f * x, 1e-3 * (1 + x))
-        upper.append(max(own, w * LEFT_OUT_REACH * typical_magnitude(key, i, v)) if w > 0 else own)
+    upper = [max(hi_f * x, 1e-3 * (1 + x),
+                 _left_out_weight(key, i, x, v) * LEFT_OUT_REACH * typical_magnitude(key, i, v))
+             for i, x in enumerate(vals)]
     return Candidate(effect, "missing" if all(out) else "misestimated", tuple((key, i) for i in range(len(vals))),
                      tuple(vals), (0.0,) * len(vals), tuple(upper))
 
