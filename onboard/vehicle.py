@@ -573,7 +573,7 @@ def _check_plausible(v: Vehicle, err: "_Errors") -> None:
     fill = v.body.volume / (4.0 / 3.0 * math.pi * v.body.radius ** 3)
     if not HULL_FILL[0] <= fill <= HULL_FILL[1]:
         err.lines.append(f"body.radius {v.body.radius:g} m with body.volume {v.body.volume:g} m^3: the volume fills "
-                         f"{fill:.3g} of the radius' sphere: expected {HULL_FILL[0]:g}-{HULL_FILL[1]:g} "
+                         f"{fill:.3g} of the radius' sphere ({'over' if fill > HULL_FILL[1] else 'under'} the limit): expected {HULL_FILL[0]:g}-{HULL_FILL[1]:g} "
                          "(the hull sphere's radius); a length? cm?")
     if v.n_jets:
         k0, k1, k2 = v.thruster.kt

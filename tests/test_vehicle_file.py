@@ -323,9 +323,13 @@ ABSURD = [
     # a hostile user's find (2026-12-02): a radius its volume could not fill, or overfills a
     # thousandfold (hand: 0.00665 / (4/3 pi 5^3) = 1.27e-5; / (4/3 pi 0.01^3) = 1588)
     ("radius = 0.16 ", "radius = 5.0 ", "body.radius 5 m with body.volume 0.00665 m^3: the volume fills 1.27e-05 of "
-     "the radius' sphere: expected 0.01-20 (the hull sphere's radius); a length? cm?"),
+     "the radius' sphere (under the limit): expected 0.01-20 (the hull sphere's radius); a length? cm?"),
     ("radius = 0.16 ", "radius = 0.01 ", "body.radius 0.01 m with body.volume 0.00665 m^3: the volume fills 1.59e+03 "
-     "of the radius' sphere: expected 0.01-20 (the hull sphere's radius); a length? cm?"),
+     "of the radius' sphere (over the limit): expected 0.01-20 (the hull sphere's radius); a length? cm?"),
+    # just over the limit, printed "20" at .3g: the words say which side (hand: radius 0.04297 m,
+    # 0.00665 / (4/3 pi 0.04297^3) = 20.01)
+    ("radius = 0.16 ", "radius = 0.04297 ", "body.radius 0.04297 m with body.volume 0.00665 m^3: the volume fills 20 "
+     "of the radius' sphere (over the limit): expected 0.01-20 (the hull sphere's radius); a length? cm?"),
     ("kt = [0.350165, -0.30192, 0.20207]", "kt = [0.0, 0.0, 0.0]",
      "thruster.kt [0, 0, 0]: K(J) 0 at J = 0: expected K(J) > 0 over j_range [0, 0.54] (a jet that pushes "
      "nothing, or backwards)"),
